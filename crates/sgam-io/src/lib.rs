@@ -1,0 +1,1 @@
+//! sgam-io (to be written).

@@ -1,0 +1,1 @@
+//! sgam-map (to be written).

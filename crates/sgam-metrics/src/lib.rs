@@ -1,0 +1,1 @@
+//! sgam-metrics (to be written).

@@ -1,0 +1,1 @@
+//! sgam-model (to be written).

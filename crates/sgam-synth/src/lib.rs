@@ -1,0 +1,1 @@
+//! sgam-synth (to be written).
