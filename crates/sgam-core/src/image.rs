@@ -30,10 +30,7 @@ impl<T> Image<T> {
     /// Wraps row-major data, checking its length.
     pub fn try_from_vec(width: u32, height: u32, data: Vec<T>) -> Result<Self, CoreError> {
         if data.len() != width as usize * height as usize {
-            return Err(CoreError::SizeMismatch(format!(
-                "{} values for a {width}x{height} image",
-                data.len()
-            )));
+            return Err(CoreError::SizeMismatch(format!("{} values for a {width}x{height} image", data.len())));
         }
         Ok(Self { width, height, data })
     }

@@ -116,7 +116,8 @@ impl Rigid3 {
     /// Rotation angle (radians) of `self.inverse() * other`, and translation distance.
     pub fn distance_to(&self, other: &Self) -> (f32, f32) {
         let rel = self.inverse() * *other;
-        let cos = ((rel.rotation.x_axis.x + rel.rotation.y_axis.y + rel.rotation.z_axis.z - 1.0) * 0.5).clamp(-1.0, 1.0);
+        let cos =
+            ((rel.rotation.x_axis.x + rel.rotation.y_axis.y + rel.rotation.z_axis.z - 1.0) * 0.5).clamp(-1.0, 1.0);
         (cos.acos(), rel.translation.length())
     }
 
@@ -148,7 +149,10 @@ impl std::ops::Mul for Rigid3 {
     type Output = Rigid3;
     /// `a_from_c = a_from_b * b_from_c`.
     fn mul(self, rhs: Rigid3) -> Rigid3 {
-        Rigid3 { rotation: self.rotation * rhs.rotation, translation: self.rotation * rhs.translation + self.translation }
+        Rigid3 {
+            rotation: self.rotation * rhs.rotation,
+            translation: self.rotation * rhs.translation + self.translation,
+        }
     }
 }
 

@@ -50,7 +50,9 @@ pub fn boustrophedon_cells(n_i: usize, n_j: usize) -> Vec<(usize, usize)> {
 pub fn grid_poses(seed: &Rigid3, cells: &[(usize, usize)], step_m: f32) -> Vec<Rigid3> {
     cells
         .iter()
-        .map(|&(i, j)| Rigid3::new(seed.rotation, seed.translation + Vec3::new(i as f32 * step_m, j as f32 * step_m, 0.0)))
+        .map(|&(i, j)| {
+            Rigid3::new(seed.rotation, seed.translation + Vec3::new(i as f32 * step_m, j as f32 * step_m, 0.0))
+        })
         .collect()
 }
 
