@@ -10,6 +10,9 @@ pub struct Guidance {
     /// `true` where the pixel is missing (no geometry, or no source agreed on its colour).
     /// Row-major, same size as `frame`.
     pub missing: Vec<bool>,
+    /// Seed for any random draw the refiner makes for this frame (derived from the run seed and
+    /// the step index, so a resumed run draws exactly what an uninterrupted one would).
+    pub seed: u64,
 }
 
 impl Guidance {
