@@ -1,0 +1,58 @@
+//! Dense 8^3 voxel blocks and the integer grid they live on.
+
+use glam::IVec3;
+
+/// Voxels per block edge.
+pub const BLOCK_SIZE: i32 = 8;
+/// Voxels per block.
+pub const BLOCK_VOXELS: usize = 512;
+
+/// One voxel: truncated signed distance (normalised to `[-1, 1]` by the truncation), the
+/// accumulated weight (0 = never observed) and the averaged sRGB colour in `[0, 1]`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Voxel {
+    /// Normalised truncated signed distance: positive in front of the surface (free space),
+    /// negative behind it; `1` far in front.
+    pub tsdf: f32,
+    /// Number of observations averaged (possibly capped); `0` = unobserved.
+    pub weight: f32,
+    /// Averaged colour, sRGB `[0, 1]`.
+    pub colour: [f32; 3],
+}
+
+impl Voxel {
+    /// An unobserved voxel.
+    pub const EMPTY: Voxel = Voxel { tsdf: 1.0, weight: 0.0, colour: [0.0; 3] };
+}
+
+/// A dense block of `8 x 8 x 8` voxels; voxel `(x, y, z)` (local, each in `0..8`) is at index
+/// `x + 8 y + 64 z`. Block key `k` covers global voxels `8 k .. 8 k + 7` on each axis.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Block {
+    /// The voxels, `x` fastest.
+    pub voxels: Box<[Voxel; BLOCK_VOXELS]>,
+}
+
+impl Default for Block {
+    fn default() -> Self {
+        Self { voxels: Box::new([Voxel::EMPTY; BLOCK_VOXELS]) }
+    }
+}
+
+/// Index of local voxel `(x, y, z)` inside a block.
+#[inline]
+pub fn local_index(x: i32, y: i32, z: i32) -> usize {
+    (x + BLOCK_SIZE * (y + BLOCK_SIZE * z)) as usize
+}
+
+/// The block key holding global voxel `g`.
+#[inline]
+pub fn block_of_voxel(g: IVec3) -> IVec3 {
+    IVec3::new(g.x.div_euclid(BLOCK_SIZE), g.y.div_euclid(BLOCK_SIZE), g.z.div_euclid(BLOCK_SIZE))
+}
+
+/// Local coordinates of global voxel `g` inside its block.
+#[inline]
+pub fn voxel_in_block(g: IVec3) -> IVec3 {
+    IVec3::new(g.x.rem_euclid(BLOCK_SIZE), g.y.rem_euclid(BLOCK_SIZE), g.z.rem_euclid(BLOCK_SIZE))
+}

@@ -1,0 +1,403 @@
+//! The voxel-hashed TSDF map and its integration.
+
+use glam::{IVec3, Vec3};
+use rayon::prelude::*;
+use rustc_hash::{FxHashMap, FxHashSet};
+use sgam_core::{is_valid_depth, Camera, RgbdFrame, Rigid3, Vec2};
+
+use crate::block::{Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS};
+use crate::mesh::BlockMesh;
+use crate::TsdfConfig;
+
+/// Blocks per super-block edge: the coarse grid used to find the blocks inside a frustum or a
+/// box without visiting the whole map.
+pub(crate) const SUPER_SIZE: i32 = 8;
+
+/// What one [`TsdfMap::integrate`] call did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct IntegrateStats {
+    /// Blocks intersected by the frame's truncation band (existing and new).
+    pub blocks_touched: usize,
+    /// Blocks newly allocated by this frame.
+    pub blocks_allocated: usize,
+    /// Blocks in which at least one voxel changed (these are marked dirty for meshing).
+    pub blocks_updated: usize,
+    /// Voxels updated.
+    pub voxels_updated: usize,
+    /// Pixels with a usable depth (valid and inside the depth range).
+    pub pixels_used: usize,
+}
+
+/// A sparse voxel-hashed colour TSDF: a hash map from block key (`IVec3`) to dense 8^3 blocks
+/// ([`Block`]), plus a marching-cubes mesh cached per block.
+///
+/// Geometry: global voxel `g` (integer, world axes) has its centre at
+/// `(g + 0.5) * voxel_size_m` in world coordinates; block key `k` holds voxels `8 k ..= 8 k + 7`.
+#[derive(Debug, Clone)]
+pub struct TsdfMap {
+    pub(crate) config: TsdfConfig,
+    /// Block key -> block id (index into `keys`, `blocks`, `meshes`).
+    pub(crate) index: FxHashMap<IVec3, u32>,
+    pub(crate) keys: Vec<IVec3>,
+    pub(crate) blocks: Vec<Block>,
+    pub(crate) meshes: Vec<BlockMesh>,
+    /// Blocks whose voxels changed since their neighbourhood was last meshed.
+    pub(crate) dirty: Vec<u32>,
+    pub(crate) is_dirty: Vec<bool>,
+    /// Super-block key -> ids of its blocks (ascending).
+    pub(crate) super_index: FxHashMap<IVec3, Vec<u32>>,
+    /// Weight threshold the cached block meshes were built with.
+    pub(crate) mesh_weight_threshold: Option<f32>,
+}
+
+impl TsdfMap {
+    /// An empty map. The configuration is used as given; call [`TsdfConfig::validate`] first for
+    /// user input (a non-positive voxel size makes every integration a no-op).
+    pub fn new(config: TsdfConfig) -> Self {
+        Self {
+            config,
+            index: FxHashMap::default(),
+            keys: Vec::new(),
+            blocks: Vec::new(),
+            meshes: Vec::new(),
+            dirty: Vec::new(),
+            is_dirty: Vec::new(),
+            super_index: FxHashMap::default(),
+            mesh_weight_threshold: None,
+        }
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &TsdfConfig {
+        &self.config
+    }
+
+    /// Number of allocated blocks.
+    pub fn block_count(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Approximate heap memory in bytes (voxels, hash indices and cached meshes).
+    pub fn memory_bytes(&self) -> usize {
+        let block = std::mem::size_of::<Voxel>() * BLOCK_VOXELS + std::mem::size_of::<Block>();
+        let per_block = block
+            + std::mem::size_of::<IVec3>() * 2
+            + std::mem::size_of::<u32>() * 2
+            + std::mem::size_of::<BlockMesh>()
+            + std::mem::size_of::<bool>();
+        let meshes: usize = self.meshes.iter().map(BlockMesh::heap_bytes).sum();
+        self.blocks.capacity().max(self.blocks.len()) * per_block + meshes + self.super_index.len() * 64
+    }
+
+    /// Sorted keys of all allocated blocks.
+    pub fn block_keys(&self) -> Vec<IVec3> {
+        let mut k = self.keys.clone();
+        k.sort_unstable_by_key(|k| (k.x, k.y, k.z));
+        k
+    }
+
+    /// The block with key `key`, if allocated.
+    pub fn block(&self, key: IVec3) -> Option<&Block> {
+        self.index.get(&key).map(|&i| &self.blocks[i as usize])
+    }
+
+    /// The voxel at global voxel index `g`, if its block is allocated.
+    #[inline]
+    pub fn voxel(&self, g: IVec3) -> Option<&Voxel> {
+        let k = crate::block::block_of_voxel(g);
+        let l = crate::block::voxel_in_block(g);
+        self.block(k).map(|b| &b.voxels[crate::block::local_index(l.x, l.y, l.z)])
+    }
+
+    /// Allocates the block `key` if needed and returns its id.
+    pub(crate) fn allocate(&mut self, key: IVec3) -> (u32, bool) {
+        if let Some(&i) = self.index.get(&key) {
+            return (i, false);
+        }
+        let id = self.blocks.len() as u32;
+        self.index.insert(key, id);
+        self.keys.push(key);
+        self.blocks.push(Block::default());
+        self.meshes.push(BlockMesh::default());
+        self.is_dirty.push(false);
+        let sk = IVec3::new(key.x.div_euclid(SUPER_SIZE), key.y.div_euclid(SUPER_SIZE), key.z.div_euclid(SUPER_SIZE));
+        self.super_index.entry(sk).or_default().push(id);
+        (id, true)
+    }
+
+    pub(crate) fn mark_dirty(&mut self, id: u32) {
+        if !self.is_dirty[id as usize] {
+            self.is_dirty[id as usize] = true;
+            self.dirty.push(id);
+        }
+    }
+
+    /// Fuses one RGB-D frame seen by `camera` (planar depth, metres; sRGB colour).
+    ///
+    /// 1. Every pixel with a depth in `[depth_min_m, depth_max_m]` walks its ray segment from
+    ///    `depth - trunc` to `depth + trunc` (planar) over the block grid; the blocks crossed are
+    ///    allocated (deduplicated, new keys allocated in sorted order).
+    /// 2. In parallel over those blocks (rayon), each voxel centre is projected into the image;
+    ///    with the depth `d` at the nearest pixel and the voxel's planar depth `z`,
+    ///    `sdf = d - z`; voxels with `sdf < -trunc` are left alone, the others get
+    ///    `o = min(1, sdf / trunc)` and the paper's running average
+    ///    `tsdf = (w tsdf + o) / (w + 1)`, `w += 1` (colour the same way). With a weight cap
+    ///    `c`, `w` is clamped to `c - 1` before the update so the weight never exceeds `c`.
+    ///
+    /// Cost depends on the frame only (pixels and touched blocks), never on the map size.
+    /// Changed blocks are marked dirty for [`TsdfMap::update_mesh`]. A frame whose size differs
+    /// from the intrinsics is read at its own size (projections outside it are skipped); a
+    /// non-finite pose integrates nothing.
+    pub fn integrate(&mut self, frame: &RgbdFrame, camera: &Camera) -> IntegrateStats {
+        let cfg = self.config;
+        let mut stats = IntegrateStats::default();
+        if !camera.world_from_camera.is_finite() || !(cfg.voxel_size_m > 0.0) || !(cfg.trunc_voxels > 0.0) {
+            return stats;
+        }
+        let (keys, pixels_used) = touched_blocks(frame, camera, &cfg);
+        stats.pixels_used = pixels_used;
+        stats.blocks_touched = keys.len();
+        let mut ids = Vec::with_capacity(keys.len());
+        for &k in &keys {
+            let (id, new) = self.allocate(k);
+            stats.blocks_allocated += new as usize;
+            ids.push(id);
+        }
+        ids.sort_unstable();
+        let camera_from_world = camera.world_from_camera.inverse();
+        let ctx = UpdateContext::new(frame, camera, &camera_from_world, &cfg);
+        let updated: Vec<(u32, usize)> = {
+            let blocks = disjoint_mut(&mut self.blocks, &ids);
+            let keys_of = &self.keys;
+            blocks
+                .into_par_iter()
+                .zip(ids.par_iter())
+                .map(|(block, &id)| (id, ctx.update_block(block, keys_of[id as usize])))
+                .collect()
+        };
+        for (id, n) in updated {
+            if n > 0 {
+                stats.blocks_updated += 1;
+                stats.voxels_updated += n;
+                self.mark_dirty(id);
+            }
+        }
+        stats
+    }
+}
+
+/// Mutable references to `blocks[ids[i]]` for sorted, unique `ids`, in O(ids) time.
+fn disjoint_mut<'a>(blocks: &'a mut [Block], ids: &[u32]) -> Vec<&'a mut Block> {
+    let mut out = Vec::with_capacity(ids.len());
+    let mut rest = blocks;
+    let mut offset = 0usize;
+    for &id in ids {
+        let at = id as usize - offset;
+        let (_, tail) = std::mem::take(&mut rest).split_at_mut(at);
+        if let Some((first, tail)) = tail.split_first_mut() {
+            out.push(first);
+            rest = tail;
+        }
+        offset = id as usize + 1;
+    }
+    out
+}
+
+/// The block keys crossed by every usable pixel's truncation band, sorted, plus the number of
+/// usable pixels.
+fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
+    let (w, h) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
+    let trunc = cfg.trunc_m();
+    let inv_block = 1.0 / cfg.block_size_m();
+    let k = camera.intrinsics;
+    let wfc: Rigid3 = camera.world_from_camera;
+    let rows_per_task = 8usize;
+    let depth = &frame.depth_m.data;
+    let (set, used) = (0..h.div_ceil(rows_per_task))
+        .into_par_iter()
+        .fold(
+            || (FxHashSet::<IVec3>::default(), 0usize),
+            |(mut set, mut used), task| {
+                let mut recent = [IVec3::MAX; 4];
+                let mut slot = 0;
+                for v in task * rows_per_task..((task + 1) * rows_per_task).min(h) {
+                    for u in 0..w {
+                        let d = depth[v * w + u];
+                        if !is_valid_depth(d) || d < cfg.depth_min_m || d > cfg.depth_max_m {
+                            continue;
+                        }
+                        used += 1;
+                        let ray = k.ray_z1(Vec2::new(u as f32, v as f32));
+                        let a = wfc.transform_point(ray * (d - trunc).max(0.0)) * inv_block;
+                        let b = wfc.transform_point(ray * (d + trunc)) * inv_block;
+                        walk_cells(a, b, |cell| {
+                            if !recent.contains(&cell) {
+                                recent[slot] = cell;
+                                slot = (slot + 1) % recent.len();
+                                set.insert(cell);
+                            }
+                        });
+                    }
+                }
+                (set, used)
+            },
+        )
+        .reduce(
+            || (FxHashSet::default(), 0),
+            |(mut a, na), (b, nb)| {
+                if a.len() < b.len() {
+                    let mut b = b;
+                    b.extend(a);
+                    return (b, na + nb);
+                }
+                a.extend(b);
+                (a, na + nb)
+            },
+        );
+    let mut keys: Vec<IVec3> = set.into_iter().collect();
+    keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
+    (keys, used)
+}
+
+/// Visits every unit grid cell crossed by the segment `a -> b` (grid units), in order
+/// (Amanatides-Woo traversal).
+#[inline]
+pub(crate) fn walk_cells(a: Vec3, b: Vec3, mut visit: impl FnMut(IVec3)) {
+    if !(a.is_finite() && b.is_finite()) {
+        return;
+    }
+    let mut cell = a.floor().as_ivec3();
+    let end = b.floor().as_ivec3();
+    let dir = b - a;
+    let step = IVec3::new(sign(dir.x), sign(dir.y), sign(dir.z));
+    let next_boundary = |p: f32, c: i32, s: i32| if s > 0 { (c + 1) as f32 - p } else { p - c as f32 };
+    let t_of = |dist: f32, dv: f32| if dv != 0.0 { dist / dv.abs() } else { f32::INFINITY };
+    let mut t_max = Vec3::new(
+        t_of(next_boundary(a.x, cell.x, step.x), dir.x),
+        t_of(next_boundary(a.y, cell.y, step.y), dir.y),
+        t_of(next_boundary(a.z, cell.z, step.z), dir.z),
+    );
+    let t_delta = Vec3::new(t_of(1.0, dir.x), t_of(1.0, dir.y), t_of(1.0, dir.z));
+    let max_steps = (end - cell).abs().element_sum() + 4;
+    visit(cell);
+    for _ in 0..max_steps {
+        if cell == end {
+            return;
+        }
+        let axis = if t_max.x <= t_max.y && t_max.x <= t_max.z {
+            0
+        } else if t_max.y <= t_max.z {
+            1
+        } else {
+            2
+        };
+        if t_max[axis] > 1.0 {
+            return;
+        }
+        cell[axis] += step[axis];
+        t_max[axis] += t_delta[axis];
+        visit(cell);
+    }
+}
+
+#[inline]
+fn sign(x: f32) -> i32 {
+    if x > 0.0 {
+        1
+    } else if x < 0.0 {
+        -1
+    } else {
+        0
+    }
+}
+
+/// Per-frame constants of the voxel update.
+struct UpdateContext<'a> {
+    frame: &'a RgbdFrame,
+    camera_from_world: Rigid3,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    voxel_size_m: f32,
+    trunc_m: f32,
+    depth_min_m: f32,
+    depth_max_m: f32,
+    weight_cap: f32,
+}
+
+impl<'a> UpdateContext<'a> {
+    fn new(frame: &'a RgbdFrame, camera: &'a Camera, camera_from_world: &Rigid3, cfg: &TsdfConfig) -> Self {
+        let k = camera.intrinsics;
+        Self {
+            frame,
+            camera_from_world: *camera_from_world,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            voxel_size_m: cfg.voxel_size_m,
+            trunc_m: cfg.trunc_m(),
+            depth_min_m: cfg.depth_min_m,
+            depth_max_m: cfg.depth_max_m,
+            weight_cap: cfg.weight_cap.unwrap_or(f32::INFINITY),
+        }
+    }
+
+    /// Updates one block; returns the number of voxels changed.
+    fn update_block(&self, block: &mut Block, key: IVec3) -> usize {
+        let vs = self.voxel_size_m;
+        let origin = (key * BLOCK_SIZE).as_vec3() + Vec3::splat(0.5);
+        let r = self.camera_from_world.rotation;
+        let base = self.camera_from_world.transform_point(origin * vs);
+        let (dx, dy, dz) = (r.x_axis * vs, r.y_axis * vs, r.z_axis * vs);
+        let (w, h) = (self.frame.depth_m.width as i32, self.frame.depth_m.height as i32);
+        let depth = &self.frame.depth_m.data;
+        let colour = &self.frame.colour.data;
+        let inv_trunc = 1.0 / self.trunc_m;
+        let cap_prev = self.weight_cap - 1.0;
+        let mut n = 0;
+        let mut i = 0usize;
+        for z in 0..BLOCK_SIZE {
+            for y in 0..BLOCK_SIZE {
+                let mut p = base + dy * y as f32 + dz * z as f32;
+                for _x in 0..BLOCK_SIZE {
+                    let pc = p;
+                    p += dx;
+                    let idx = i;
+                    i += 1;
+                    if pc.z <= 0.0 {
+                        continue;
+                    }
+                    let iz = 1.0 / pc.z;
+                    let u = (self.fx * pc.x * iz + self.cx + 0.5).floor();
+                    let v = (self.fy * pc.y * iz + self.cy + 0.5).floor();
+                    if !(u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
+                        continue;
+                    }
+                    let pix = v as usize * w as usize + u as usize;
+                    let d = depth[pix];
+                    if !(is_valid_depth(d) && d >= self.depth_min_m && d <= self.depth_max_m) {
+                        continue;
+                    }
+                    let sdf = d - pc.z;
+                    if sdf < -self.trunc_m {
+                        continue;
+                    }
+                    let obs = (sdf * inv_trunc).min(1.0);
+                    let vox = &mut block.voxels[idx];
+                    let wp = vox.weight.min(cap_prev);
+                    let inv = 1.0 / (wp + 1.0);
+                    vox.tsdf = (vox.tsdf * wp + obs) * inv;
+                    let c = colour.get(pix).copied().unwrap_or([0.0; 3]);
+                    for ch in 0..3 {
+                        vox.colour[ch] = (vox.colour[ch] * wp + c[ch]) * inv;
+                    }
+                    vox.weight = wp + 1.0;
+                    n += 1;
+                }
+            }
+        }
+        n
+    }
+}

@@ -1,0 +1,314 @@
+//! Incremental marching cubes over the block grid, and welded mesh extraction.
+
+use glam::{IVec3, Vec3};
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+use sgam_core::TriMesh;
+
+use crate::block::{local_index, Block, Voxel, BLOCK_SIZE};
+use crate::map::{TsdfMap, SUPER_SIZE};
+use crate::mc_table::{edge_axis, edge_start, table};
+
+/// Global id of a mesh vertex: the marching-cubes edge from global voxel `g` to `g + e_axis`.
+pub(crate) type EdgeKey = (IVec3, u8);
+
+/// The marching-cubes mesh of the cells whose lowest corner lies in one block (so a block's
+/// cells read the voxels of its +x/+y/+z neighbours). Vertices carry their global edge key so
+/// block meshes weld into one world mesh.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct BlockMesh {
+    pub positions: Vec<Vec3>,
+    pub colours: Vec<[f32; 3]>,
+    pub edge_keys: Vec<EdgeKey>,
+    pub triangles: Vec<[u32; 3]>,
+    /// Bounds of the vertices (meaningless when empty).
+    pub min: Vec3,
+    pub max: Vec3,
+}
+
+impl BlockMesh {
+    pub fn heap_bytes(&self) -> usize {
+        self.positions.capacity() * 12
+            + self.colours.capacity() * 12
+            + self.edge_keys.capacity() * std::mem::size_of::<EdgeKey>()
+            + self.triangles.capacity() * 12
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.triangles.is_empty()
+    }
+}
+
+/// Offsets of the 8 cube corners in the 9^3 gather grid.
+const GRID: usize = 9;
+const CORNER_OFFSET: [usize; 8] = {
+    let mut o = [0usize; 8];
+    let mut c = 0;
+    while c < 8 {
+        o[c] = (c & 1) + GRID * ((c >> 1) & 1) + GRID * GRID * (c >> 2);
+        c += 1;
+    }
+    o
+};
+const AXIS_STRIDE: [usize; 3] = [1, GRID, GRID * GRID];
+
+impl TsdfMap {
+    /// Re-meshes (marching cubes) the blocks whose cells may have changed since the last call:
+    /// every dirty block and its seven lower neighbours (`-x`, `-y`, `-z` and diagonals), whose
+    /// border cells read the dirty block's voxels. A cell is meshed when all eight corner voxels
+    /// have `weight >= weight_threshold` (and `> 0`). Changing the threshold re-meshes the whole
+    /// map once. Runs in parallel over blocks; returns the number of blocks re-meshed.
+    pub fn update_mesh(&mut self, weight_threshold: f32) -> usize {
+        if self.mesh_weight_threshold != Some(weight_threshold) {
+            self.mesh_weight_threshold = Some(weight_threshold);
+            for id in 0..self.blocks.len() as u32 {
+                self.mark_dirty(id);
+            }
+        }
+        if self.dirty.is_empty() {
+            return 0;
+        }
+        let mut todo = Vec::with_capacity(self.dirty.len() * 2);
+        for &id in &self.dirty {
+            let key = self.keys[id as usize];
+            for o in 0..8 {
+                let nk = key - IVec3::new(o & 1, (o >> 1) & 1, o >> 2);
+                if let Some(&nid) = self.index.get(&nk) {
+                    todo.push(nid);
+                }
+            }
+        }
+        for &id in &self.dirty {
+            self.is_dirty[id as usize] = false;
+        }
+        self.dirty.clear();
+        todo.sort_unstable();
+        todo.dedup();
+        let this = &*self;
+        let meshes: Vec<BlockMesh> = todo.par_iter().map(|&id| this.mesh_block(id, weight_threshold)).collect();
+        for (&id, m) in todo.iter().zip(meshes) {
+            self.meshes[id as usize] = m;
+        }
+        todo.len()
+    }
+
+    /// The welded world mesh: the union of all block meshes (after [`TsdfMap::update_mesh`])
+    /// with vertices on shared edges merged, so no vertex is duplicated on block borders and
+    /// the mesh has no cracks. Vertex order is deterministic (blocks in sorted key order).
+    /// Triangles wind counter-clockwise seen from free space; colours are sRGB `[0, 1]`.
+    pub fn extract_mesh(&mut self, weight_threshold: f32) -> TriMesh {
+        self.update_mesh(weight_threshold);
+        let ids: Vec<u32> = (0..self.blocks.len() as u32).collect();
+        self.weld(ids, |_| true)
+    }
+
+    /// Like [`TsdfMap::extract_mesh`] but keeps only triangles with at least one vertex inside
+    /// the world box `[min, max]` (metres); only blocks near the box are visited.
+    pub fn extract_mesh_in_box(&mut self, min: Vec3, max: Vec3, weight_threshold: f32) -> TriMesh {
+        self.update_mesh(weight_threshold);
+        let margin = Vec3::splat(self.config.voxel_size_m);
+        let ids = self.blocks_where(min - margin, max + margin, |_, _| true);
+        let inside = |p: Vec3| p.cmpge(min).all() && p.cmple(max).all();
+        self.weld(ids, |tri| tri.iter().any(|p| inside(*p)))
+    }
+
+    /// Merges the meshes of `ids` (any order; sorted by key here) keeping triangles that pass
+    /// `keep`.
+    fn weld(&self, mut ids: Vec<u32>, keep: impl Fn(&[Vec3; 3]) -> bool) -> TriMesh {
+        ids.sort_unstable_by_key(|&i| {
+            let k = self.keys[i as usize];
+            (k.x, k.y, k.z)
+        });
+        let mut out = TriMesh::default();
+        let mut global: FxHashMap<EdgeKey, u32> = FxHashMap::default();
+        let mut local_to_global: Vec<u32> = Vec::new();
+        for id in ids {
+            let m = &self.meshes[id as usize];
+            if m.is_empty() {
+                continue;
+            }
+            local_to_global.clear();
+            local_to_global.resize(m.positions.len(), u32::MAX);
+            for tri in &m.triangles {
+                let p = tri.map(|i| m.positions[i as usize]);
+                if !keep(&p) {
+                    continue;
+                }
+                let mut g = [0u32; 3];
+                for k in 0..3 {
+                    let li = tri[k] as usize;
+                    if local_to_global[li] == u32::MAX {
+                        let next = out.positions.len() as u32;
+                        let gi = *global.entry(m.edge_keys[li]).or_insert(next);
+                        if gi == next {
+                            out.positions.push(m.positions[li]);
+                            out.colours.push(m.colours[li]);
+                        }
+                        local_to_global[li] = gi;
+                    }
+                    g[k] = local_to_global[li];
+                }
+                out.triangles.push(g);
+            }
+        }
+        out
+    }
+
+    /// Ids of blocks whose AABB intersects `[min, max]` and passes `pred(block_min, block_max)`
+    /// (also applied to super-blocks to prune). Visits at most the super-blocks overlapping the
+    /// box, or all super-blocks when that is fewer. Order: ascending id.
+    pub(crate) fn blocks_where(&self, min: Vec3, max: Vec3, pred: impl Fn(Vec3, Vec3) -> bool) -> Vec<u32> {
+        let mut out = Vec::new();
+        // NaN bounds or an empty box select nothing; infinite bounds are clamped (and then
+        // fall back to visiting every super-block).
+        if min.is_nan() || max.is_nan() || min.cmpgt(max).any() {
+            return out;
+        }
+        let bs = self.config.block_size_m();
+        let ss = bs * SUPER_SIZE as f32;
+        let clamp = |v: f32| v.clamp(-1.0e9, 1.0e9);
+        let smin = (min.map(clamp) / ss).floor();
+        let smax = (max.map(clamp) / ss).floor();
+        let span = (smax - smin + Vec3::ONE).as_dvec3();
+        let count = span.x * span.y * span.z;
+        let kmin = (min.map(clamp) / bs).floor();
+        let kmax = (max.map(clamp) / bs).floor();
+        let mut visit_super = |skey: IVec3, ids: &Vec<u32>| {
+            let lo = (skey * SUPER_SIZE).as_vec3() * bs;
+            if !pred(lo, lo + Vec3::splat(ss)) {
+                return;
+            }
+            for &id in ids {
+                let k = self.keys[id as usize];
+                let kf = k.as_vec3();
+                if kf.cmplt(kmin).any() || kf.cmpgt(kmax).any() {
+                    continue;
+                }
+                let lo = kf * bs;
+                if pred(lo, lo + Vec3::splat(bs)) {
+                    out.push(id);
+                }
+            }
+        };
+        if count > self.super_index.len() as f64 {
+            for (skey, ids) in &self.super_index {
+                visit_super(*skey, ids);
+            }
+        } else {
+            let (a, b) = (smin.as_ivec3(), smax.as_ivec3());
+            for z in a.z..=b.z {
+                for y in a.y..=b.y {
+                    for x in a.x..=b.x {
+                        if let Some(ids) = self.super_index.get(&IVec3::new(x, y, z)) {
+                            visit_super(IVec3::new(x, y, z), ids);
+                        }
+                    }
+                }
+            }
+        }
+        out.sort_unstable();
+        out
+    }
+
+    /// Marching cubes over the 8^3 cells of block `id`.
+    fn mesh_block(&self, id: u32, weight_threshold: f32) -> BlockMesh {
+        let key = self.keys[id as usize];
+        let neighbours: [Option<&Block>; 8] = std::array::from_fn(|o| {
+            let o = o as i32;
+            let nk = key + IVec3::new(o & 1, (o >> 1) & 1, o >> 2);
+            if o == 0 {
+                Some(&self.blocks[id as usize])
+            } else {
+                self.index.get(&nk).map(|&i| &self.blocks[i as usize])
+            }
+        });
+        let mut grid = [Voxel::EMPTY; GRID * GRID * GRID];
+        let mut any_inside = false;
+        let mut any_outside = false;
+        for z in 0..GRID as i32 {
+            for y in 0..GRID as i32 {
+                for x in 0..GRID as i32 {
+                    let o = (x == BLOCK_SIZE) as usize
+                        | ((y == BLOCK_SIZE) as usize) << 1
+                        | ((z == BLOCK_SIZE) as usize) << 2;
+                    if let Some(b) = neighbours[o] {
+                        let v = b.voxels[local_index(x % BLOCK_SIZE, y % BLOCK_SIZE, z % BLOCK_SIZE)];
+                        if v.weight > 0.0 && v.weight >= weight_threshold {
+                            if v.tsdf < 0.0 {
+                                any_inside = true;
+                            } else {
+                                any_outside = true;
+                            }
+                        }
+                        grid[x as usize + GRID * (y as usize + GRID * z as usize)] = v;
+                    }
+                }
+            }
+        }
+        let mut mesh = BlockMesh::default();
+        if !(any_inside && any_outside) {
+            return mesh;
+        }
+        let vs = self.config.voxel_size_m;
+        let origin = key * BLOCK_SIZE;
+        let cases = &table().cases;
+        let mut cache = vec![u32::MAX; GRID * GRID * GRID * 3];
+        let ok = |v: &Voxel| v.weight > 0.0 && v.weight >= weight_threshold;
+        for z in 0..BLOCK_SIZE as usize {
+            for y in 0..BLOCK_SIZE as usize {
+                for x in 0..BLOCK_SIZE as usize {
+                    let base = x + GRID * (y + GRID * z);
+                    let mut case = 0usize;
+                    let mut valid = true;
+                    for (c, off) in CORNER_OFFSET.iter().enumerate() {
+                        let v = &grid[base + off];
+                        if !ok(v) {
+                            valid = false;
+                            break;
+                        }
+                        if v.tsdf < 0.0 {
+                            case |= 1 << c;
+                        }
+                    }
+                    if !valid || case == 0 || case == 255 {
+                        continue;
+                    }
+                    for tri in &cases[case] {
+                        let mut idx = [0u32; 3];
+                        for k in 0..3 {
+                            let e = tri[k] as usize;
+                            let axis = edge_axis(e);
+                            let gi = base + CORNER_OFFSET[edge_start(e)];
+                            let slot = gi * 3 + axis;
+                            if cache[slot] == u32::MAX {
+                                cache[slot] = mesh.positions.len() as u32;
+                                let (v0, v1) = (&grid[gi], &grid[gi + AXIS_STRIDE[axis]]);
+                                let t = v0.tsdf / (v0.tsdf - v1.tsdf);
+                                let local = IVec3::new(
+                                    (gi % GRID) as i32,
+                                    (gi / GRID % GRID) as i32,
+                                    (gi / (GRID * GRID)) as i32,
+                                );
+                                let g = origin + local;
+                                let mut p = (g.as_vec3() + Vec3::splat(0.5)) * vs;
+                                p[axis] += t * vs;
+                                let c = std::array::from_fn(|ch| v0.colour[ch] + t * (v1.colour[ch] - v0.colour[ch]));
+                                mesh.positions.push(p);
+                                mesh.colours.push(c);
+                                mesh.edge_keys.push((g, axis as u8));
+                            }
+                            idx[k] = cache[slot];
+                        }
+                        mesh.triangles.push(idx);
+                    }
+                }
+            }
+        }
+        if let Some(&first) = mesh.positions.first() {
+            let (lo, hi) = mesh.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+            mesh.min = lo;
+            mesh.max = hi;
+        }
+        mesh
+    }
+}

@@ -1,0 +1,168 @@
+//! Versioned binary persistence of a [`TsdfMap`].
+//!
+//! Layout (all little-endian):
+//! ```text
+//! magic      8 bytes  "SGAMTSDF"
+//! version    u32      1
+//! config     f32 voxel_size_m, f32 trunc_voxels, f32 depth_min_m, f32 depth_max_m,
+//!            u8 has_cap, f32 weight_cap (0 when none)
+//! blocks     u64 count, then per block in ascending (x, y, z) key order:
+//!            i32 x, i32 y, i32 z, 512 voxels x (f32 tsdf, f32 weight, f32 r, f32 g, f32 b)
+//! crc32      u32      CRC-32 (IEEE) of every preceding byte
+//! ```
+//! Meshes are not stored; a loaded map re-meshes everything on the first extraction.
+
+use std::io::{Read, Write};
+
+use glam::IVec3;
+
+use crate::block::{Block, BLOCK_VOXELS};
+use crate::{MapError, TsdfConfig, TsdfMap};
+
+const MAGIC: &[u8; 8] = b"SGAMTSDF";
+const VERSION: u32 = 1;
+const HEADER_BYTES: usize = 8 + 4 + 17 + 8;
+const BLOCK_BYTES: usize = 12 + BLOCK_VOXELS * 20;
+
+impl TsdfMap {
+    /// Writes the map in the versioned binary format described in this module (blocks sorted
+    /// by key, so equal maps give identical bytes), ending with a CRC-32.
+    pub fn write_to(&self, w: &mut impl Write) -> Result<(), MapError> {
+        let mut ids: Vec<u32> = (0..self.blocks.len() as u32).collect();
+        ids.sort_unstable_by_key(|&i| {
+            let k = self.keys[i as usize];
+            (k.x, k.y, k.z)
+        });
+        let mut buf = Vec::with_capacity(HEADER_BYTES + ids.len() * BLOCK_BYTES + 4);
+        buf.extend_from_slice(MAGIC);
+        buf.extend_from_slice(&VERSION.to_le_bytes());
+        let c = &self.config;
+        for v in [c.voxel_size_m, c.trunc_voxels, c.depth_min_m, c.depth_max_m] {
+            buf.extend_from_slice(&v.to_le_bytes());
+        }
+        buf.push(c.weight_cap.is_some() as u8);
+        buf.extend_from_slice(&c.weight_cap.unwrap_or(0.0).to_le_bytes());
+        buf.extend_from_slice(&(ids.len() as u64).to_le_bytes());
+        for id in ids {
+            let k = self.keys[id as usize];
+            for v in [k.x, k.y, k.z] {
+                buf.extend_from_slice(&v.to_le_bytes());
+            }
+            for vox in self.blocks[id as usize].voxels.iter() {
+                for v in [vox.tsdf, vox.weight, vox.colour[0], vox.colour[1], vox.colour[2]] {
+                    buf.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+        }
+        let crc = crc32fast::hash(&buf);
+        buf.extend_from_slice(&crc.to_le_bytes());
+        w.write_all(&buf)?;
+        w.flush()?;
+        Ok(())
+    }
+
+    /// Reads a map written by [`TsdfMap::write_to`]. Errors on wrong magic, unsupported version,
+    /// truncation, checksum mismatch, an invalid configuration or duplicate block keys. All
+    /// blocks are marked dirty, so the first extraction re-meshes the map.
+    pub fn read_from(r: &mut impl Read) -> Result<TsdfMap, MapError> {
+        let mut bytes = Vec::new();
+        r.read_to_end(&mut bytes)?;
+        if bytes.len() < 12 {
+            if bytes.len() >= 8 && &bytes[..8] != MAGIC {
+                return Err(bad_magic(&bytes));
+            }
+            return Err(MapError::Truncated(format!("{} bytes, shorter than the header", bytes.len())));
+        }
+        if &bytes[..8] != MAGIC {
+            return Err(bad_magic(&bytes));
+        }
+        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+        if version != VERSION {
+            return Err(MapError::UnsupportedVersion { found: version, supported: VERSION });
+        }
+        if bytes.len() < HEADER_BYTES + 4 {
+            return Err(MapError::Truncated(format!("{} bytes, shorter than the header", bytes.len())));
+        }
+        let mut cur = Cursor { bytes: &bytes, at: 12 };
+        let config = TsdfConfig {
+            voxel_size_m: cur.f32()?,
+            trunc_voxels: cur.f32()?,
+            depth_min_m: cur.f32()?,
+            depth_max_m: cur.f32()?,
+            weight_cap: {
+                let has = cur.u8()?;
+                let cap = cur.f32()?;
+                (has != 0).then_some(cap)
+            },
+        };
+        let count = cur.u64()?;
+        let expected = (count as u128) * BLOCK_BYTES as u128 + HEADER_BYTES as u128 + 4;
+        if (bytes.len() as u128) < expected {
+            return Err(MapError::Truncated(format!("{} bytes for {count} blocks (expected {expected})", bytes.len())));
+        }
+        let body = bytes.len() - 4;
+        let stored = u32::from_le_bytes([bytes[body], bytes[body + 1], bytes[body + 2], bytes[body + 3]]);
+        let computed = crc32fast::hash(&bytes[..body]);
+        if stored != computed {
+            return Err(MapError::ChecksumMismatch { stored, computed });
+        }
+        if (bytes.len() as u128) != expected {
+            return Err(MapError::Truncated(format!(
+                "{} bytes for {count} blocks (expected {expected}): trailing data",
+                bytes.len()
+            )));
+        }
+        config.validate()?;
+        let mut map = TsdfMap::new(config);
+        for _ in 0..count {
+            let key = IVec3::new(cur.i32()?, cur.i32()?, cur.i32()?);
+            let (id, new) = map.allocate(key);
+            if !new {
+                return Err(MapError::Truncated(format!("duplicate block key {key}")));
+            }
+            let mut block = Block::default();
+            for vox in block.voxels.iter_mut() {
+                vox.tsdf = cur.f32()?;
+                vox.weight = cur.f32()?;
+                vox.colour = [cur.f32()?, cur.f32()?, cur.f32()?];
+            }
+            map.blocks[id as usize] = block;
+            map.mark_dirty(id);
+        }
+        Ok(map)
+    }
+}
+
+fn bad_magic(bytes: &[u8]) -> MapError {
+    MapError::BadMagic { found: bytes[..bytes.len().min(8)].to_vec(), expected: MAGIC.to_vec() }
+}
+
+struct Cursor<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl Cursor<'_> {
+    fn take<const N: usize>(&mut self) -> Result<[u8; N], MapError> {
+        let s = self
+            .bytes
+            .get(self.at..self.at + N)
+            .ok_or_else(|| MapError::Truncated(format!("stream ends at byte {}", self.bytes.len())))?;
+        self.at += N;
+        let mut out = [0u8; N];
+        out.copy_from_slice(s);
+        Ok(out)
+    }
+    fn u8(&mut self) -> Result<u8, MapError> {
+        Ok(self.take::<1>()?[0])
+    }
+    fn f32(&mut self) -> Result<f32, MapError> {
+        Ok(f32::from_le_bytes(self.take()?))
+    }
+    fn i32(&mut self) -> Result<i32, MapError> {
+        Ok(i32::from_le_bytes(self.take()?))
+    }
+    fn u64(&mut self) -> Result<u64, MapError> {
+        Ok(u64::from_le_bytes(self.take()?))
+    }
+}

@@ -1,0 +1,423 @@
+//! Guidance rendering: z-buffered rasterization of the block meshes, and a TSDF ray-cast.
+
+use glam::{IVec3, Vec3};
+use rayon::prelude::*;
+use sgam_core::{Camera, Image, Rigid3, Vec2};
+
+use crate::block::{block_of_voxel, local_index, voxel_in_block, Block, Voxel};
+use crate::TsdfMap;
+
+/// A rendered view of the map at a pinhole camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rendered {
+    /// Planar depth in metres (camera z); `0` where nothing was hit.
+    pub depth_m: Image<f32>,
+    /// sRGB colour in `[0, 1]` interpolated from the map; black where nothing was hit.
+    pub colour: Image<[f32; 3]>,
+    /// Row-major `[H, W]`; true where a surface was hit.
+    pub covered: Vec<bool>,
+    /// Row-major `[H, W]`; true where the nearest surface was seen from its back (inside / behind
+    /// an observed surface). Rasterizer only; always false for the ray-cast.
+    pub back_facing: Vec<bool>,
+    /// Blocks whose meshes (rasterizer) or voxels (ray-cast, counted once per ray) were used;
+    /// bounded by the frustum, not the map size.
+    pub blocks_visited: usize,
+}
+
+impl Rendered {
+    fn empty(width: u32, height: u32) -> Self {
+        let n = width as usize * height as usize;
+        Self {
+            depth_m: Image::filled(width, height, 0.0),
+            colour: Image::filled(width, height, [0.0; 3]),
+            covered: vec![false; n],
+            back_facing: vec![false; n],
+            blocks_visited: 0,
+        }
+    }
+}
+
+/// A view frustum as inward-facing planes `n . p + d >= 0` in world coordinates.
+#[derive(Debug, Clone, Copy)]
+struct Frustum {
+    planes: [(Vec3, f32); 6],
+}
+
+impl Frustum {
+    fn new(camera: &Camera, near_m: f32, far_m: f32) -> Self {
+        let k = camera.intrinsics;
+        let r = camera.world_from_camera.rotation;
+        let t = camera.world_from_camera.translation;
+        let left = (-0.5 - k.cx) / k.fx;
+        let right = (k.width as f32 - 0.5 - k.cx) / k.fx;
+        let top = (-0.5 - k.cy) / k.fy;
+        let bottom = (k.height as f32 - 0.5 - k.cy) / k.fy;
+        let side = |n_c: Vec3| {
+            let n = r * n_c;
+            (n, -n.dot(t))
+        };
+        let fwd = r * Vec3::Z;
+        Self {
+            planes: [
+                side(Vec3::new(1.0, 0.0, -left)),
+                side(Vec3::new(-1.0, 0.0, right)),
+                side(Vec3::new(0.0, 1.0, -top)),
+                side(Vec3::new(0.0, -1.0, bottom)),
+                (fwd, -fwd.dot(t) - near_m),
+                (-fwd, fwd.dot(t) + far_m),
+            ],
+        }
+    }
+
+    /// Conservative: false only when the box is entirely outside one plane.
+    fn intersects_aabb(&self, lo: Vec3, hi: Vec3) -> bool {
+        self.planes.iter().all(|(n, d)| {
+            let p = Vec3::select(n.cmpge(Vec3::ZERO), hi, lo);
+            n.dot(p) + d >= 0.0
+        })
+    }
+}
+
+/// A triangle in screen space: pixel coordinates, `1/z`, colour / z, and facing.
+#[derive(Debug, Clone, Copy)]
+struct ScreenTri {
+    p: [Vec2; 3],
+    inv_z: [f32; 3],
+    col_z: [Vec3; 3],
+    back: bool,
+}
+
+const BAND_ROWS: usize = 16;
+const EDGE_EPS: f32 = 1e-5;
+
+impl TsdfMap {
+    /// The ids of blocks whose AABB intersects the view frustum between `depth_min_m` and
+    /// `depth_max_m`, ascending.
+    fn blocks_in_frustum(&self, camera: &Camera) -> Vec<u32> {
+        let (near, far) = (self.config.depth_min_m.max(1e-4), self.config.depth_max_m);
+        let frustum = Frustum::new(camera, near, far);
+        let corners = camera.frustum_corners_world(near, far);
+        let (lo, hi) = corners.iter().fold((corners[0], corners[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        self.blocks_where(lo, hi, |a, b| frustum.intersects_aabb(a, b))
+    }
+
+    /// Z-buffered rasterization of the map's block meshes at `camera` (re-meshes dirty blocks
+    /// first with the last weight threshold used, 1.0 if none).
+    ///
+    /// Only blocks whose AABB intersects the frustum (`depth_min_m..depth_max_m`) are touched.
+    /// Depth is perspective-correct (`1/z` interpolated in screen space); colour likewise.
+    /// Pixel `(u, v)` is sampled at its centre. Triangles with any vertex nearer than
+    /// `depth_min_m` are skipped (not clipped); hits beyond `depth_max_m` are dropped.
+    ///
+    /// Back faces are **not** culled: a surface seen from behind still occludes what lies
+    /// beyond it (the TSDF says the space behind an observed surface is occupied), and the
+    /// nearest hit wins either way; such pixels are flagged in [`Rendered::back_facing`].
+    /// Rows are split into bands rasterized in parallel; triangles are drawn in a fixed order
+    /// so the result is deterministic.
+    pub fn render(&mut self, camera: &Camera) -> Rendered {
+        let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
+        self.update_mesh(threshold);
+        self.rasterize(camera)
+    }
+
+    /// The rasterizer behind [`TsdfMap::render`], on the block meshes as they are (no
+    /// re-meshing).
+    pub fn rasterize(&self, camera: &Camera) -> Rendered {
+        let k = camera.intrinsics;
+        let (w, h) = (k.width as usize, k.height as usize);
+        let mut out = Rendered::empty(k.width, k.height);
+        if !camera.world_from_camera.is_finite() {
+            return out;
+        }
+        let ids: Vec<u32> =
+            self.blocks_in_frustum(camera).into_iter().filter(|&i| !self.meshes[i as usize].is_empty()).collect();
+        out.blocks_visited = ids.len();
+        let (near, far) = (self.config.depth_min_m.max(1e-4), self.config.depth_max_m);
+        let camera_from_world = camera.world_from_camera.inverse();
+        let per_block: Vec<Vec<ScreenTri>> =
+            ids.par_iter().map(|&id| self.project_block(id, &camera_from_world, camera, near)).collect();
+        // Bin triangles into row bands.
+        let n_bands = h.div_ceil(BAND_ROWS);
+        let mut bins: Vec<Vec<u32>> = vec![Vec::new(); n_bands];
+        let tris: Vec<ScreenTri> = per_block.into_iter().flatten().collect();
+        for (i, t) in tris.iter().enumerate() {
+            let y0 = t.p[0].y.min(t.p[1].y).min(t.p[2].y).ceil().max(0.0);
+            let y1 = t.p[0].y.max(t.p[1].y).max(t.p[2].y).floor().min(h as f32 - 1.0);
+            if y1 < y0 {
+                continue;
+            }
+            for b in (y0 as usize / BAND_ROWS)..=(y1 as usize / BAND_ROWS) {
+                bins[b].push(i as u32);
+            }
+        }
+        let mut inv_z_buf = vec![0.0f32; w * h];
+        let mut colour_buf = vec![[0.0f32; 3]; w * h];
+        let mut back_buf = vec![false; w * h];
+        inv_z_buf
+            .par_chunks_mut(BAND_ROWS * w)
+            .zip(colour_buf.par_chunks_mut(BAND_ROWS * w))
+            .zip(back_buf.par_chunks_mut(BAND_ROWS * w))
+            .enumerate()
+            .for_each(|(band, ((zb, cb), bb))| {
+                let v0 = band * BAND_ROWS;
+                let rows = zb.len() / w.max(1);
+                for &ti in &bins[band] {
+                    raster_tri(&tris[ti as usize], v0, rows, w, far, zb, cb, bb);
+                }
+            });
+        for i in 0..w * h {
+            if inv_z_buf[i] > 0.0 {
+                out.depth_m.data[i] = 1.0 / inv_z_buf[i];
+                out.colour.data[i] = colour_buf[i];
+                out.covered[i] = true;
+                out.back_facing[i] = back_buf[i];
+            }
+        }
+        out
+    }
+
+    fn project_block(&self, id: u32, camera_from_world: &Rigid3, camera: &Camera, near: f32) -> Vec<ScreenTri> {
+        let m = &self.meshes[id as usize];
+        let k = camera.intrinsics;
+        let pc: Vec<Vec3> = m.positions.iter().map(|p| camera_from_world.transform_point(*p)).collect();
+        let (wf, hf) = (k.width as f32, k.height as f32);
+        let mut out = Vec::with_capacity(m.triangles.len());
+        for tri in &m.triangles {
+            let c = tri.map(|i| pc[i as usize]);
+            if c[0].z < near || c[1].z < near || c[2].z < near {
+                continue;
+            }
+            let inv_z = c.map(|p| 1.0 / p.z);
+            let p: [Vec2; 3] =
+                std::array::from_fn(|i| Vec2::new(k.fx * c[i].x * inv_z[i] + k.cx, k.fy * c[i].y * inv_z[i] + k.cy));
+            let (lo, hi) = (p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]));
+            if hi.x < -0.5 || hi.y < -0.5 || lo.x > wf - 0.5 || lo.y > hf - 0.5 {
+                continue;
+            }
+            let normal = (c[1] - c[0]).cross(c[2] - c[0]);
+            let col = tri.map(|i| Vec3::from_array(m.colours[i as usize]));
+            out.push(ScreenTri {
+                p,
+                inv_z,
+                col_z: std::array::from_fn(|i| col[i] * inv_z[i]),
+                back: normal.dot(c[0]) > 0.0,
+            });
+        }
+        out
+    }
+
+    /// Direct TSDF ray-cast at `camera`: each pixel's ray is marched from `depth_min_m` to
+    /// `depth_max_m` (planar), skipping unallocated blocks whole, stepping by
+    /// `max(0.8 * tsdf * trunc, voxel / 2)` through observed space, and stops at the first
+    /// `+ -> -` zero crossing of the trilinearly interpolated TSDF (all 8 voxels observed,
+    /// `weight > 0`); the crossing is refined linearly between the two samples. Colour is
+    /// trilinear at the crossing. Only blocks along the rays (inside the frustum) are read.
+    /// Parallel over rows.
+    pub fn ray_cast(&self, camera: &Camera) -> Rendered {
+        let k = camera.intrinsics;
+        let (w, h) = (k.width as usize, k.height as usize);
+        let mut out = Rendered::empty(k.width, k.height);
+        if !camera.world_from_camera.is_finite() || w == 0 {
+            return out;
+        }
+        let rows: Vec<(Vec<(f32, [f32; 3])>, usize)> = (0..h)
+            .into_par_iter()
+            .map(|v| {
+                let mut visited = 0usize;
+                let row = (0..w)
+                    .map(|u| {
+                        let (hit, n) = self.cast_ray(camera, Vec2::new(u as f32, v as f32));
+                        visited += n;
+                        hit.unwrap_or((0.0, [0.0; 3]))
+                    })
+                    .collect();
+                (row, visited)
+            })
+            .collect();
+        for (v, (row, n)) in rows.into_iter().enumerate() {
+            out.blocks_visited += n;
+            for (u, (d, c)) in row.into_iter().enumerate() {
+                if d > 0.0 {
+                    let i = v * w + u;
+                    out.depth_m.data[i] = d;
+                    out.colour.data[i] = c;
+                    out.covered[i] = true;
+                }
+            }
+        }
+        out
+    }
+
+    /// One ray: `(Some((depth, colour)), blocks entered)`.
+    fn cast_ray(&self, camera: &Camera, uv: Vec2) -> (Option<(f32, [f32; 3])>, usize) {
+        let cfg = &self.config;
+        let vs = cfg.voxel_size_m;
+        let bs = cfg.block_size_m();
+        let trunc = cfg.trunc_m();
+        let dir_c = camera.intrinsics.ray_z1(uv);
+        let len = dir_c.length();
+        let dir = camera.world_from_camera.transform_vector(dir_c);
+        let origin = camera.world_from_camera.translation;
+        let mut t = cfg.depth_min_m.max(1e-4);
+        let t_far = cfg.depth_max_m;
+        let mut prev: Option<(f32, f32)> = None;
+        let mut cache = BlockCache::default();
+        let mut entered = 0usize;
+        let mut last_block = IVec3::MAX;
+        let mut guard = 0;
+        while t <= t_far && guard < 1_000_000 {
+            guard += 1;
+            let p = origin + dir * t;
+            let bkey = (p / bs).floor().as_ivec3();
+            if bkey != last_block {
+                last_block = bkey;
+                if self.index.contains_key(&bkey) {
+                    entered += 1;
+                } else {
+                    // Skip the unallocated block: every trilinear stencil of a point in it reads it.
+                    let lo = bkey.as_vec3() * bs;
+                    let hi = lo + Vec3::splat(bs);
+                    let mut t_exit = f32::INFINITY;
+                    for a in 0..3 {
+                        if dir[a] > 0.0 {
+                            t_exit = t_exit.min((hi[a] - origin[a]) / dir[a]);
+                        } else if dir[a] < 0.0 {
+                            t_exit = t_exit.min((lo[a] - origin[a]) / dir[a]);
+                        }
+                    }
+                    t = t_exit.max(t) + 1e-4 * vs / len;
+                    prev = None;
+                    continue;
+                }
+            }
+            match self.trilinear(p, &mut cache) {
+                Some((s, _)) => {
+                    if let Some((tp, sp)) = prev {
+                        if sp >= 0.0 && s < 0.0 {
+                            let tc = tp + (t - tp) * sp / (sp - s);
+                            let colour =
+                                self.trilinear(origin + dir * tc, &mut cache).map(|(_, c)| c).unwrap_or([0.0; 3]);
+                            return (Some((tc, colour)), entered);
+                        }
+                    }
+                    prev = Some((t, s));
+                    let step_m = (0.8 * s * trunc).max(0.5 * vs);
+                    t += step_m / len;
+                }
+                None => {
+                    prev = None;
+                    t += 0.5 * vs / len;
+                }
+            }
+        }
+        (None, entered)
+    }
+
+    /// Trilinear TSDF and colour at world point `p`; `None` unless all 8 voxels are observed.
+    fn trilinear<'a>(&'a self, p: Vec3, cache: &mut BlockCache<'a>) -> Option<(f32, [f32; 3])> {
+        let q = p / self.config.voxel_size_m - Vec3::splat(0.5);
+        let g0 = q.floor();
+        let f = q - g0;
+        let g0 = g0.as_ivec3();
+        let mut tsdf = 0.0;
+        let mut colour = Vec3::ZERO;
+        for c in 0..8 {
+            let o = IVec3::new(c & 1, (c >> 1) & 1, c >> 2);
+            let v = cache.voxel(self, g0 + o)?;
+            if v.weight <= 0.0 {
+                return None;
+            }
+            let wx = if o.x == 1 { f.x } else { 1.0 - f.x };
+            let wy = if o.y == 1 { f.y } else { 1.0 - f.y };
+            let wz = if o.z == 1 { f.z } else { 1.0 - f.z };
+            let wgt = wx * wy * wz;
+            tsdf += wgt * v.tsdf;
+            colour += wgt * Vec3::from_array(v.colour);
+        }
+        Some((tsdf, colour.to_array()))
+    }
+}
+
+/// Remembers the last block looked up along a ray.
+#[derive(Default)]
+struct BlockCache<'a> {
+    key: Option<IVec3>,
+    block: Option<&'a Block>,
+}
+
+impl<'a> BlockCache<'a> {
+    #[inline]
+    fn voxel(&mut self, map: &'a TsdfMap, g: IVec3) -> Option<Voxel> {
+        let k = block_of_voxel(g);
+        if self.key != Some(k) {
+            self.key = Some(k);
+            self.block = map.index.get(&k).map(|&i| &map.blocks[i as usize]);
+        }
+        let l = voxel_in_block(g);
+        self.block.map(|b| b.voxels[local_index(l.x, l.y, l.z)])
+    }
+}
+
+impl std::fmt::Debug for BlockCache<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BlockCache").field("key", &self.key).finish()
+    }
+}
+
+/// Rasterizes one triangle into a band of rows `v0 .. v0 + rows`.
+#[inline]
+fn raster_tri(
+    t: &ScreenTri,
+    v0: usize,
+    rows: usize,
+    w: usize,
+    far: f32,
+    zb: &mut [f32],
+    cb: &mut [[f32; 3]],
+    bb: &mut [bool],
+) {
+    let [a, b, c] = t.p;
+    let area = (b - a).perp_dot(c - a);
+    if area.abs() < 1e-12 || !area.is_finite() {
+        return;
+    }
+    let inv_area = 1.0 / area;
+    let lo = a.min(b).min(c);
+    let hi = a.max(b).max(c);
+    let x0 = lo.x.ceil().max(0.0) as usize;
+    let x1 = hi.x.floor().min(w as f32 - 1.0);
+    if x1 < 0.0 {
+        return;
+    }
+    let x1 = x1 as usize;
+    let y0 = (lo.y.ceil().max(v0 as f32)) as usize;
+    let y1 = hi.y.floor().min((v0 + rows) as f32 - 1.0);
+    if y1 < y0 as f32 || x1 < x0 {
+        return;
+    }
+    let y1 = y1 as usize;
+    let min_inv_z = 1.0 / far;
+    for y in y0..=y1 {
+        let py = y as f32;
+        for x in x0..=x1 {
+            let p = Vec2::new(x as f32, py);
+            // Barycentrics (normalised by the signed area so both windings work).
+            let l0 = (c - b).perp_dot(p - b) * inv_area;
+            let l1 = (a - c).perp_dot(p - c) * inv_area;
+            let l2 = (b - a).perp_dot(p - a) * inv_area;
+            // A hair of tolerance so pixels exactly on shared edges are never lost to rounding
+            // (a double hit is harmless under the z-test).
+            if l0 < -EDGE_EPS || l1 < -EDGE_EPS || l2 < -EDGE_EPS {
+                continue;
+            }
+            let iz = l0 * t.inv_z[0] + l1 * t.inv_z[1] + l2 * t.inv_z[2];
+            let i = (y - v0) * w + x;
+            if iz > zb[i] && iz >= min_inv_z {
+                zb[i] = iz;
+                let col = (l0 * t.col_z[0] + l1 * t.col_z[1] + l2 * t.col_z[2]) / iz;
+                cb[i] = col.to_array();
+                bb[i] = t.back;
+            }
+        }
+    }
+}

@@ -1,0 +1,149 @@
+//! Fusing analytic scenes: geometric accuracy, area, watertightness, incremental meshing.
+
+mod common;
+
+use std::collections::HashMap;
+
+use common::*;
+use sgam_core::Vec3;
+use sgam_map::{TsdfConfig, TsdfMap};
+
+fn sphere_map(voxel: f32) -> (TsdfMap, f32) {
+    let radius = 0.5;
+    let scene = [Shape::Sphere { centre: Vec3::ZERO, radius, colour: [0.8, 0.2, 0.1] }];
+    let cfg =
+        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 5.0, weight_cap: None };
+    let mut map = TsdfMap::new(cfg);
+    for dir in fibonacci_directions(24) {
+        let cam = camera(dir * 2.0, Vec3::ZERO, 160, 160, 160.0);
+        let frame = render_analytic(&scene, &cam);
+        map.integrate(&frame, &cam);
+    }
+    (map, radius)
+}
+
+#[test]
+fn fused_sphere_is_accurate_closed_and_outward_facing() {
+    let voxel = 0.02;
+    let (mut map, radius) = sphere_map(voxel);
+    let mesh = map.extract_mesh(1.0);
+    assert!(mesh.triangles.len() > 1000, "{} triangles", mesh.triangles.len());
+    // Every vertex within half a voxel of the true surface.
+    let worst = mesh.positions.iter().map(|p| (p.length() - radius).abs()).fold(0.0, f32::max);
+    assert!(worst < 0.5 * voxel, "worst vertex error {worst} m");
+    // Area within 2 %.
+    let truth = 4.0 * std::f64::consts::PI * (radius as f64).powi(2);
+    let rel = (mesh.area() - truth).abs() / truth;
+    assert!(rel < 0.02, "area {} vs {truth} ({:.2} %)", mesh.area(), rel * 100.0);
+    // No duplicate vertices (welded across block borders).
+    let mut seen = HashMap::new();
+    for (i, p) in mesh.positions.iter().enumerate() {
+        let key = (p.x.to_bits(), p.y.to_bits(), p.z.to_bits());
+        assert!(seen.insert(key, i).is_none(), "vertex {p} duplicated");
+    }
+    // Closed and consistently oriented: every directed edge once, and its reverse once.
+    let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+    for t in &mesh.triangles {
+        for k in 0..3 {
+            *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
+        }
+    }
+    for (&(a, b), &n) in &directed {
+        assert_eq!(n, 1, "directed edge {a}->{b} used {n} times");
+        assert_eq!(directed.get(&(b, a)), Some(&1), "edge {a}-{b} is a border (crack)");
+    }
+    // Outward-facing: normals point away from the centre.
+    let outward = mesh
+        .triangles
+        .iter()
+        .filter(|t| {
+            let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+            (b - a).cross(c - a).dot(a + b + c) > 0.0
+        })
+        .count();
+    assert_eq!(outward, mesh.triangles.len());
+    // Vertex colours come from the voxels.
+    assert!(mesh.colours.iter().all(|c| (c[0] - 0.8).abs() < 1e-3 && (c[2] - 0.1).abs() < 1e-3));
+}
+
+#[test]
+fn incremental_meshing_equals_meshing_from_scratch() {
+    let scene = [
+        Shape::Plane { normal: Vec3::Z, offset: 0.0 },
+        Shape::Cuboid { min: Vec3::new(-0.3, -0.2, 0.0), max: Vec3::new(0.2, 0.3, 0.45), colour: [0.1, 0.7, 0.3] },
+    ];
+    let cfg =
+        TsdfConfig { voxel_size_m: 0.03, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 6.0, weight_cap: None };
+    let mut incremental = TsdfMap::new(cfg);
+    let mut batch = TsdfMap::new(cfg);
+    let eyes =
+        [Vec3::new(2.0, 0.3, 2.0), Vec3::new(-1.5, 1.5, 1.8), Vec3::new(0.2, -2.0, 1.5), Vec3::new(0.0, 0.1, 2.5)];
+    let mut remeshed = Vec::new();
+    for eye in eyes {
+        let cam = camera(eye, Vec3::ZERO, 96, 72, 80.0);
+        let frame = render_analytic(&scene, &cam);
+        let stats = incremental.integrate(&frame, &cam);
+        remeshed.push((incremental.update_mesh(1.0), stats.blocks_updated));
+        batch.integrate(&frame, &cam);
+    }
+    // After the first call, only dirty blocks and their lower neighbours are re-meshed.
+    for &(n, updated) in &remeshed[1..] {
+        assert!(n <= 8 * updated, "re-meshed {n} blocks for {updated} updated");
+    }
+    assert!(remeshed[1].0 < incremental.block_count(), "{remeshed:?}");
+    let a = incremental.extract_mesh(1.0);
+    let b = batch.extract_mesh(1.0);
+    assert!(!a.triangles.is_empty());
+    assert_eq!(a, b);
+}
+
+#[test]
+fn plane_vertices_lie_on_the_plane() {
+    let scene = [Shape::Plane { normal: Vec3::Z, offset: 0.0 }];
+    let voxel = 0.04;
+    let cfg =
+        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: None };
+    let mut map = TsdfMap::new(cfg);
+    for eye in [Vec3::new(0.5, 0.0, 2.0), Vec3::new(-0.5, 0.5, 2.5), Vec3::new(0.0, -0.7, 1.5)] {
+        let cam = camera(eye, Vec3::new(0.0, 0.0, 0.0), 128, 96, 100.0);
+        map.integrate(&render_analytic(&scene, &cam), &cam);
+    }
+    let mesh = map.extract_mesh(1.0);
+    assert!(mesh.triangles.len() > 500);
+    let worst = mesh.positions.iter().map(|p| p.z.abs()).fold(0.0, f32::max);
+    assert!(worst < 0.5 * voxel, "worst |z| {worst}");
+    // Box extraction: a 1 m x 1 m square of the plane.
+    let boxed = map.extract_mesh_in_box(Vec3::new(-0.5, -0.5, -0.2), Vec3::new(0.5, 0.5, 0.2), 1.0);
+    let area = boxed.area();
+    assert!(area > 0.99 && area < 1.2, "area in box {area}");
+    assert!(boxed.positions.iter().all(|p| p.x > -0.5 - 2.0 * voxel && p.x < 0.5 + 2.0 * voxel));
+    // Colours follow the texture.
+    let worst_colour = mesh
+        .positions
+        .iter()
+        .zip(&mesh.colours)
+        .map(|(p, c)| {
+            let t = texture(*p);
+            (0..3).map(|i| (t[i] - c[i]).abs()).fold(0.0, f32::max)
+        })
+        .fold(0.0, f32::max);
+    assert!(worst_colour < 0.05, "colour error {worst_colour}");
+}
+
+#[test]
+fn weight_cap_bounds_the_weight_and_tracks_changes() {
+    let cfg =
+        TsdfConfig { voxel_size_m: 0.05, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: Some(4.0) };
+    let mut map = TsdfMap::new(cfg);
+    let cam = camera(Vec3::new(0.0, 0.0, 2.0), Vec3::ZERO, 64, 48, 60.0);
+    let near = render_analytic(&[Shape::Plane { normal: Vec3::Z, offset: 0.0 }], &cam);
+    for _ in 0..10 {
+        map.integrate(&near, &cam);
+    }
+    let max_w = map
+        .block_keys()
+        .iter()
+        .flat_map(|k| map.block(*k).unwrap().voxels.iter().map(|v| v.weight).collect::<Vec<_>>())
+        .fold(0.0, f32::max);
+    assert_eq!(max_w, 4.0);
+}
