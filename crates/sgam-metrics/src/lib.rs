@@ -1,1 +1,21 @@
-//! sgam-metrics (to be written).
+//! Metrics of the SGAM paper (DESIGN.md §7). Pure functions; no I/O.
+//!
+//! # Concepts
+//! - Image metrics take `sgam_core::Image<[f32; 3]>` colour in `[0, 1]` and an optional pixel
+//!   mask (`true` = counted). PSNR is on the 8-bit scale (values quantised to 8 bits first, as
+//!   when comparing saved PNGs). SSIM is the Gaussian-window SSIM of Wang et al. (11x11,
+//!   sigma 1.5, K1 0.01, K2 0.03, dynamic range 1), averaged over channels and (masked) pixels.
+//! - Geometry metrics take point sets in metres: [`point_to_mesh_distances`] (exact
+//!   point-to-triangle distance through a uniform grid), [`chamfer`].
+//! - Scene metrics ([`scene`]) compare sets of regions (occupancy histograms) with the
+//!   point-cloud GAN metrics of Achlioptas et al.: JSD, MMD, COV, MinDist, 1-NNA.
+//! - [`kid`]: kernel inception distance on any feature vectors (weight-free when the features
+//!   come from our own encoder).
+
+mod geometry;
+mod image;
+pub mod kid;
+pub mod scene;
+
+pub use geometry::{chamfer, median, point_to_mesh_distances};
+pub use image::{disparity_l1, psnr, ssim, ssim_map};
