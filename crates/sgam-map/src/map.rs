@@ -151,7 +151,8 @@ impl TsdfMap {
     pub fn integrate(&mut self, frame: &RgbdFrame, camera: &Camera) -> IntegrateStats {
         let cfg = self.config;
         let mut stats = IntegrateStats::default();
-        if !camera.world_from_camera.is_finite() || !(cfg.voxel_size_m > 0.0) || !(cfg.trunc_voxels > 0.0) {
+        let positive = |x: f32| x.is_finite() && x > 0.0;
+        if !camera.world_from_camera.is_finite() || !positive(cfg.voxel_size_m) || !positive(cfg.trunc_voxels) {
             return stats;
         }
         let (keys, pixels_used) = touched_blocks(frame, camera, &cfg);

@@ -21,7 +21,7 @@ use crate::{MapError, TsdfConfig, TsdfMap};
 
 const MAGIC: &[u8; 8] = b"SGAMTSDF";
 const VERSION: u32 = 1;
-const HEADER_BYTES: usize = 8 + 4 + 17 + 8;
+const HEADER_BYTES: usize = 8 + 4 + 21 + 8;
 const BLOCK_BYTES: usize = 12 + BLOCK_VOXELS * 20;
 
 impl TsdfMap {

@@ -87,6 +87,9 @@ struct ScreenTri {
     back: bool,
 }
 
+/// A ray hit: planar depth (metres, 0 = none) and colour.
+type Hit = (f32, [f32; 3]);
+
 const BAND_ROWS: usize = 16;
 const EDGE_EPS: f32 = 1e-5;
 
@@ -220,7 +223,7 @@ impl TsdfMap {
         if !camera.world_from_camera.is_finite() || w == 0 {
             return out;
         }
-        let rows: Vec<(Vec<(f32, [f32; 3])>, usize)> = (0..h)
+        let rows: Vec<(Vec<Hit>, usize)> = (0..h)
             .into_par_iter()
             .map(|v| {
                 let mut visited = 0usize;

@@ -1,5 +1,5 @@
 //! Analytic scenes rendered by ray-primitive intersection (test fixtures).
-#![allow(dead_code)]
+#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use sgam_core::{Camera, Image, Intrinsics, RgbdFrame, Rigid3, Vec2, Vec3};
 

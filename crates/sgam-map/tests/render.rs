@@ -1,0 +1,126 @@
+//! Rasterized and ray-cast depth of fused analytic scenes against the analytic truth.
+
+mod common;
+
+use common::*;
+use sgam_core::{Camera, Vec3};
+use sgam_map::{TsdfConfig, TsdfMap};
+
+fn scene() -> Vec<Shape> {
+    vec![
+        Shape::Plane { normal: Vec3::Z, offset: 0.0 },
+        Shape::Sphere { centre: Vec3::new(0.3, -0.2, 0.25), radius: 0.25, colour: [0.9, 0.3, 0.2] },
+        Shape::Cuboid { min: Vec3::new(-0.6, 0.2, 0.0), max: Vec3::new(-0.2, 0.6, 0.35), colour: [0.2, 0.3, 0.9] },
+    ]
+}
+
+fn fused(voxel: f32) -> TsdfMap {
+    let cfg =
+        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: None };
+    let mut map = TsdfMap::new(cfg);
+    let s = scene();
+    for i in 0..10 {
+        let a = i as f32 * std::f32::consts::TAU / 10.0;
+        let eye = Vec3::new(2.0 * a.cos(), 2.0 * a.sin(), 1.6 + 0.3 * (i % 2) as f32);
+        let cam = camera(eye, Vec3::ZERO, 128, 96, 110.0);
+        map.integrate(&render_analytic(&s, &cam), &cam);
+    }
+    map
+}
+
+/// Compares covered pixels with the analytic depth away from depth edges; returns
+/// (fraction of analytic pixels covered, 95th-percentile |error|, fraction within tol).
+fn compare(depth: &sgam_core::Image<f32>, covered: &[bool], cam: &Camera, tol: f32) -> (f32, f32, f32) {
+    let truth = render_analytic(&scene(), cam);
+    let (w, h) = (truth.width() as i32, truth.height() as i32);
+    let mut errors = Vec::new();
+    let mut eligible = 0usize;
+    let mut hit = 0usize;
+    for v in 1..h - 1 {
+        for u in 1..w - 1 {
+            let d = *truth.depth_m.at(u as u32, v as u32);
+            // Skip pixels next to a depth discontinuity (silhouettes).
+            let edge = [(1, 0), (-1, 0), (0, 1), (0, -1)]
+                .iter()
+                .any(|(du, dv)| (truth.depth_m.at((u + du) as u32, (v + dv) as u32) - d).abs() > 0.05);
+            if edge || d <= 0.0 {
+                continue;
+            }
+            eligible += 1;
+            let i = (v * w + u) as usize;
+            if covered[i] {
+                hit += 1;
+                errors.push((depth.data[i] - d).abs());
+            }
+        }
+    }
+    errors.sort_by(f32::total_cmp);
+    let p95 = errors[errors.len() * 95 / 100];
+    let within = errors.iter().filter(|e| **e <= tol).count() as f32 / errors.len() as f32;
+    (hit as f32 / eligible as f32, p95, within)
+}
+
+#[test]
+fn rasterized_depth_matches_analytic_depth() {
+    let voxel = 0.02;
+    let mut map = fused(voxel);
+    // A novel view between the fused ones.
+    let cam = camera(Vec3::new(1.2, 1.2, 1.9), Vec3::new(0.0, 0.0, 0.1), 128, 96, 110.0);
+    let r = map.render(&cam);
+    let (coverage, p95, within) = compare(&r.depth_m, &r.covered, &cam, 0.5 * voxel);
+    assert!(coverage > 0.97, "coverage {coverage}");
+    assert!(within > 0.99, "only {within} within half a voxel (p95 {p95})");
+    assert!(r.blocks_visited > 0);
+    // Uncovered pixels have depth 0; covered ones positive.
+    assert!(r.covered.iter().zip(&r.depth_m.data).all(|(c, d)| *c == (*d > 0.0)));
+    // Colour: the sphere pixel colour is the sphere's.
+    let truth = render_analytic(&scene(), &cam);
+    let mut colour_err = Vec::new();
+    for i in 0..r.covered.len() {
+        if r.covered[i] && (r.depth_m.data[i] - truth.depth_m.data[i]).abs() < 0.01 {
+            let (a, b) = (r.colour.data[i], truth.colour.data[i]);
+            colour_err.push((0..3).map(|c| (a[c] - b[c]).abs()).fold(0.0, f32::max));
+        }
+    }
+    colour_err.sort_by(f32::total_cmp);
+    assert!(colour_err[colour_err.len() * 9 / 10] < 0.05, "colour p90 {}", colour_err[colour_err.len() * 9 / 10]);
+}
+
+#[test]
+fn ray_cast_matches_analytic_depth_and_the_rasterizer() {
+    let voxel = 0.02;
+    let mut map = fused(voxel);
+    let cam = camera(Vec3::new(-1.0, 1.5, 1.7), Vec3::new(0.0, 0.0, 0.1), 128, 96, 110.0);
+    let rc = map.ray_cast(&cam);
+    let (coverage, p95, within) = compare(&rc.depth_m, &rc.covered, &cam, 0.5 * voxel);
+    assert!(coverage > 0.97, "coverage {coverage}");
+    assert!(within > 0.99, "only {within} within half a voxel (p95 {p95})");
+    let r = map.render(&cam);
+    let both: Vec<bool> = rc.covered.iter().zip(&r.covered).map(|(a, b)| *a && *b).collect();
+    let mut diffs: Vec<f32> =
+        (0..both.len()).filter(|i| both[*i]).map(|i| (rc.depth_m.data[i] - r.depth_m.data[i]).abs()).collect();
+    diffs.sort_by(f32::total_cmp);
+    assert!(diffs[diffs.len() * 95 / 100] < 0.25 * voxel, "raycast vs raster p95 {}", diffs[diffs.len() * 95 / 100]);
+}
+
+#[test]
+fn back_faces_occlude_and_are_flagged() {
+    // A camera inside the sphere of the mesh test sees only back faces.
+    let radius = 0.5;
+    let scene = [Shape::Sphere { centre: Vec3::ZERO, radius, colour: [0.5; 3] }];
+    let cfg =
+        TsdfConfig { voxel_size_m: 0.03, trunc_voxels: 4.0, depth_min_m: 0.05, depth_max_m: 5.0, weight_cap: None };
+    let mut map = TsdfMap::new(cfg);
+    for dir in fibonacci_directions(16) {
+        let cam = camera(dir * 2.0, Vec3::ZERO, 96, 96, 96.0);
+        map.integrate(&render_analytic(&scene, &cam), &cam);
+    }
+    let inside = camera(Vec3::ZERO, Vec3::X, 64, 64, 40.0);
+    let r = map.render(&inside);
+    let covered = r.covered.iter().filter(|c| **c).count();
+    assert_eq!(covered, 64 * 64);
+    assert!(r.back_facing.iter().all(|b| *b));
+    let outside = camera(Vec3::new(2.0, 0.0, 0.0), Vec3::ZERO, 64, 64, 60.0);
+    let r = map.render(&outside);
+    assert!(r.covered.iter().zip(&r.back_facing).all(|(c, b)| !(*c && *b)), "front view hits a back face");
+}
