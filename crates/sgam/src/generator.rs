@@ -1,0 +1,164 @@
+//! The SGAM unrolling loop: [`WorldGenerator::step`] reads like the paper's recipe.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use serde::{Deserialize, Serialize};
+use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
+use sgam_map::{warp_colour, SourceView, TsdfConfig, TsdfMap, WarpConfig};
+
+use crate::keyframes::{quantise_colour, Keyframes};
+
+/// Parameters of the loop (everything but the refiner and the trajectory).
+#[derive(Debug, Clone)]
+pub struct GeneratorConfig {
+    /// The map's TSDF parameters.
+    pub tsdf: TsdfConfig,
+    /// Geometry check of the inverse warping.
+    pub warp: WarpConfig,
+    /// At most this many source keyframes per step (authors: 5 on CLEVR, 3 on Google Earth).
+    pub k_sources: usize,
+    /// Sources must lie within this distance of the target camera, metres (authors: 1.0 / 0.3).
+    pub source_radius_m: f32,
+    /// Marching-cubes weight threshold.
+    pub weight_threshold: f32,
+    /// Ablation (InfiniteNature-style): no global map; the guidance comes from the previous
+    /// frame only.
+    pub no_map: bool,
+    /// Run seed; the refiner's per-step seed is derived from it and the step index.
+    pub seed: u64,
+}
+
+/// Wall time of each stage of one step, milliseconds.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize)]
+pub struct StepTimings {
+    /// Choosing and loading source keyframes.
+    pub sources_ms: f64,
+    /// Rasterizing the map at the target camera.
+    pub render_ms: f64,
+    /// Inverse-warping colour from the sources.
+    pub warp_ms: f64,
+    /// Completing the guidance (the model).
+    pub refine_ms: f64,
+    /// TSDF integration of the new frame.
+    pub integrate_ms: f64,
+    /// Re-meshing the dirty blocks.
+    pub mesh_ms: f64,
+    /// Writing the frame (keyframe paging + outputs).
+    pub write_ms: f64,
+    /// Whole step.
+    pub total_ms: f64,
+    /// Fraction of guidance pixels the refiner had to invent.
+    pub missing_fraction: f32,
+}
+
+struct Laps(Instant, Instant);
+impl Laps {
+    fn start() -> Self {
+        let now = Instant::now();
+        Self(now, now)
+    }
+    fn lap(&mut self) -> f64 {
+        let now = Instant::now();
+        let ms = (now - self.1).as_secs_f64() * 1e3;
+        self.1 = now;
+        ms
+    }
+    fn total(&self) -> f64 {
+        self.0.elapsed().as_secs_f64() * 1e3
+    }
+}
+
+/// Grows a world one camera at a time. Generic over the [`Refiner`] (the learned model or a
+/// stand-in).
+pub struct WorldGenerator<R: Refiner> {
+    /// The global map (TSDF + block meshes).
+    pub map: TsdfMap,
+    /// Generated frames (cameras in RAM, pixels paged to the run folder).
+    pub keyframes: Keyframes,
+    refiner: R,
+    config: GeneratorConfig,
+}
+
+impl<R: Refiner> std::fmt::Debug for WorldGenerator<R> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WorldGenerator").field("keyframes", &self.keyframes.len()).finish_non_exhaustive()
+    }
+}
+
+impl<R: Refiner> WorldGenerator<R> {
+    /// A generator over an existing map and keyframe store (empty for a new run, loaded from a
+    /// snapshot when resuming).
+    pub fn new(map: TsdfMap, keyframes: Keyframes, refiner: R, config: GeneratorConfig) -> Self {
+        Self { map, keyframes, refiner, config }
+    }
+
+    /// Starts the world from a seed frame: it is fused and kept like a generated one.
+    pub fn seed(&mut self, camera: &Camera, mut frame: RgbdFrame) -> Result<()> {
+        quantise_colour(&mut frame.colour);
+        self.map.integrate(&frame, camera);
+        self.map.update_mesh(self.config.weight_threshold);
+        self.keyframes.push(*camera, frame)?;
+        Ok(())
+    }
+
+    /// One SGAM step at `camera`: generative sensing, then mapping.
+    pub fn step(&mut self, camera: &Camera) -> Result<StepTimings> {
+        let mut t = Laps::start();
+        let mut timings = StepTimings::default();
+        // choose sources: the k nearest generated frames within the radius
+        let sources = self.choose_sources(camera)?;
+        timings.sources_ms = t.lap();
+        // guidance geometry: rasterize the map's mesh at the target camera
+        let rendered = self.map.render(camera);
+        timings.render_ms = t.lap();
+        // guidance colour: inverse-warp from the sources with a geometry check
+        let views: Vec<SourceView<'_>> = sources.iter().map(|(c, f)| SourceView { camera: c, frame: f }).collect();
+        let warped = warp_colour(camera, &rendered.depth_m, &views, &self.config.warp);
+        let step_index = self.keyframes.len() as u64;
+        let guidance = Guidance {
+            camera: *camera,
+            frame: RgbdFrame { colour: warped.colour, depth_m: rendered.depth_m },
+            missing: warped.missing,
+            seed: self.config.seed ^ step_index.wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        };
+        timings.warp_ms = t.lap();
+        timings.missing_fraction = guidance.missing_fraction();
+        // complete the incomplete RGB-D image in one shot
+        let mut frame = self.refiner.refine(&guidance).map_err(anyhow::Error::new).context("refiner failed")?;
+        quantise_colour(&mut frame.colour);
+        timings.refine_ms = t.lap();
+        // fuse the new frame into the map, once
+        self.map.integrate(&frame, camera);
+        timings.integrate_ms = t.lap();
+        // re-mesh only the blocks the frame changed
+        self.map.update_mesh(self.config.weight_threshold);
+        timings.mesh_ms = t.lap();
+        // keep it as a keyframe (written to the run folder)
+        self.keyframes.push(*camera, frame)?;
+        timings.write_ms = t.lap();
+        timings.total_ms = t.total();
+        Ok(timings)
+    }
+
+    /// Source keyframes for `camera`. With `no_map`, the previous frame only, and the map is
+    /// rebuilt from it alone (so the guidance carries no long-term memory).
+    fn choose_sources(&mut self, camera: &Camera) -> Result<Vec<(Camera, std::sync::Arc<RgbdFrame>)>> {
+        let ids = if self.config.no_map {
+            self.keyframes.len().checked_sub(1).into_iter().collect()
+        } else {
+            self.keyframes.nearest(camera, self.config.k_sources, self.config.source_radius_m)
+        };
+        let mut out = Vec::with_capacity(ids.len());
+        for i in ids {
+            out.push((self.keyframes.cameras()[i], self.keyframes.frame(i)?));
+        }
+        if self.config.no_map {
+            self.map = TsdfMap::new(self.config.tsdf);
+            if let Some((c, f)) = out.first() {
+                self.map.integrate(f, c);
+            }
+        }
+        Ok(out)
+    }
+}
