@@ -66,6 +66,8 @@ struct Prim {
     centre: Vec3,
     object_from_world: Mat3,
     scale: f32,
+    /// Squared radius of the bounding sphere about `centre`.
+    bound_r2: f32,
     shape: Shape,
     albedo: Vec3,
     material: Material,
@@ -91,13 +93,20 @@ struct Grid {
 pub struct Renderer {
     prims: Vec<Prim>,
     grid: Grid,
+    /// Per cell, the primitives that can block a sun ray (any direction of the sun disk)
+    /// starting anywhere in the cell's column of the object slab; `None` for a low sun.
+    shadow_grid: Option<Grid>,
     ground_z: f32,
     ground_half: f32,
     top_z: f32,
     sun_dir: Vec3,
-    sun_u: Vec3,
-    sun_v: Vec3,
     sun_tan_radius: f32,
+    /// 64 directions spread uniformly over the sun disk (golden-angle spiral).
+    sun_disk: [Vec3; 64],
+    /// xy bounds `(min, max)` of each primitive.
+    prim_xy_box: Vec<(Vec2, Vec2)>,
+    /// `srgb[i]` = sRGB of linear `i / SRGB_LUT_MAX`.
+    srgb_lut: Vec<f32>,
     sun_irradiance: f32,
     sky_irradiance: f32,
     ground_albedo: Vec3,
@@ -150,6 +159,13 @@ impl Renderer {
                 centre: o.world_from_object.translation,
                 object_from_world: o.world_from_object.rotation.transpose(),
                 scale: o.scale,
+                bound_r2: o.scale
+                    * o.scale
+                    * match o.shape {
+                        Shape::Sphere => 1.0,
+                        Shape::Cube => 3.0001,
+                        Shape::Cylinder | Shape::Cone => 2.0001,
+                    },
                 shape: o.shape,
                 albedo: Vec3::from_array(o.colour.map(srgb_to_linear)),
                 material: o.material,
@@ -163,16 +179,28 @@ impl Renderer {
         let helper = if sun_dir.x.abs() < 0.9 { Vec3::X } else { Vec3::Y };
         let sun_u = sun_dir.cross(helper).normalize();
         let sun_v = sun_dir.cross(sun_u);
+        let sun_tan_radius = scene.sun_angular_radius_rad.max(0.0).tan();
+        let shadow_grid =
+            shadow_sweep(sun_dir, sun_u, sun_v, sun_tan_radius, top_z - scene.ground_z_m).map(|(lo, hi)| {
+                let swept: Vec<(Vec3, Vec3)> = boxes.iter().map(|(a, b)| (*a + lo, *b + hi)).collect();
+                Grid::build(&swept, scene.ground_z_m)
+            });
         Self {
             prims,
             grid,
+            shadow_grid,
             ground_z: scene.ground_z_m,
             ground_half: scene.ground_half_extent_m,
             top_z,
             sun_dir,
-            sun_u,
-            sun_v,
-            sun_tan_radius: scene.sun_angular_radius_rad.max(0.0).tan(),
+            sun_tan_radius,
+            sun_disk: std::array::from_fn(|k| {
+                let r = ((k as f32 + 0.5) / 64.0).sqrt() * sun_tan_radius;
+                let a = k as f32 * 2.399_963;
+                (sun_dir + sun_u * (r * a.cos()) + sun_v * (r * a.sin())).normalize()
+            }),
+            prim_xy_box: boxes.iter().map(|(a, b)| (a.truncate(), b.truncate())).collect(),
+            srgb_lut: (0..=SRGB_LUT_MAX).map(|i| linear_to_srgb(i as f32 / SRGB_LUT_MAX as f32)).collect(),
             sun_irradiance: scene.sun_irradiance,
             sky_irradiance: scene.sky_irradiance,
             ground_albedo: Vec3::from_array(scene.ground_colour.map(srgb_to_linear)),
@@ -246,8 +274,8 @@ impl Renderer {
         }
         // 2-D DDA over the cells between t0 and t1.
         let p0 = (Vec2::new(o.x, o.y) + Vec2::new(d.x, d.y) * t0 - g.origin) * g.inv_cell;
-        let mut ix = (p0.x.floor() as i32).clamp(0, g.nx - 1);
-        let mut iy = (p0.y.floor() as i32).clamp(0, g.ny - 1);
+        let mut ix = fast_floor(p0.x).clamp(0, g.nx - 1);
+        let mut iy = fast_floor(p0.y).clamp(0, g.ny - 1);
         let (step_x, step_y) = (if d.x > 0.0 { 1 } else { -1 }, if d.y > 0.0 { 1 } else { -1 });
         let cell_x = |i: i32| g.origin.x + i as f32 * g.cell_m;
         let cell_y = |i: i32| g.origin.y + i as f32 * g.cell_m;
@@ -298,16 +326,22 @@ impl Renderer {
     /// True when the unit-direction ray from `o` towards the sky is blocked by an object.
     #[inline]
     fn occluded(&self, o: Vec3, d: Vec3) -> bool {
-        self.trace(o, d, f32::INFINITY, true).1 != NO_PRIM
+        match &self.shadow_grid {
+            Some(g) => match g.cell_of(o) {
+                Some(cell) => g
+                    .cell_items(cell)
+                    .iter()
+                    .any(|&pi| intersect(&self.prims[pi as usize], o, d, f32::INFINITY) < f32::INFINITY),
+                None => false,
+            },
+            None => self.trace(o, d, f32::INFINITY, true).1 != NO_PRIM,
+        }
     }
 
     /// Direction to a point of the sun disk; `(a, b)` uniform in `[0, 1)^2`.
     #[inline]
-    fn sun_sample(&self, a: f32, b: f32) -> Vec3 {
-        let r = a.sqrt() * self.sun_tan_radius;
-        let phi = b * std::f32::consts::TAU;
-        let (s, c) = phi.sin_cos();
-        (self.sun_dir + self.sun_u * (r * c) + self.sun_v * (r * s)).normalize()
+    fn sun_sample(&self, h: u32) -> Vec3 {
+        self.sun_disk[(h >> 26) as usize]
     }
 
     /// Direct + ambient radiance leaving a diffuse point.
@@ -322,8 +356,7 @@ impl Renderer {
                 let l = if cfg.soft_shadow_samples == 0 {
                     self.sun_dir
                 } else {
-                    let hk = hash32(h ^ k.wrapping_mul(0x9e37_79b9));
-                    self.sun_sample(unit_float(hk), unit_float(hash32(hk)))
+                    self.sun_sample(hash32(h ^ k.wrapping_mul(0x9e37_79b9)))
                 };
                 let ndl = n.dot(l);
                 if ndl > 0.0 && !(cfg.shadows && self.occluded(point + n * 1e-3, l)) {
@@ -338,7 +371,12 @@ impl Renderer {
 
     /// Radiance along one camera (or reflected) ray; `depth` counts reflections left.
     fn radiance(&self, o: Vec3, d: Vec3, cfg: &RenderConfig, h: u32, depth: u32) -> Vec3 {
-        let (t, prim) = self.trace(o, d, f32::INFINITY, false);
+        let hit = self.trace(o, d, f32::INFINITY, false);
+        self.shade(o, d, hit, cfg, h, depth)
+    }
+
+    /// Radiance along a ray whose closest object hit `(t, prim)` is known.
+    fn shade(&self, o: Vec3, d: Vec3, (t, prim): (f32, u32), cfg: &RenderConfig, h: u32, depth: u32) -> Vec3 {
         if prim == NO_PRIM {
             return match self.ground_hit(o, d) {
                 Some(tg) => self.diffuse_radiance(o + d * tg, Vec3::Z, self.ground_albedo, cfg, h),
@@ -395,12 +433,40 @@ impl Renderer {
                 let dv = rot * Vec3::new(0.0, 1.0 / k.fy, 0.0);
                 let base = rot * Vec3::new(-k.cx / k.fx, -k.cy / k.fy, 1.0);
                 let vf = v as f32;
+                let above = o.z > self.top_z;
+                let mut cand = [0u32; MAX_CANDIDATES];
                 for u in 0..w {
                     let uf = u as f32;
                     let d = base + du * uf + dv * vf;
-                    if let Some(hit) = self.ray_hit(o, d) {
-                        drow[u] = hit.t;
-                        irow[u] = hit.object_id;
+                    // Candidates of the whole pixel footprint (rays through the pixel square,
+                    // clipped to the object slab), when the camera is above the slab.
+                    let n_cand = if above {
+                        let corners =
+                            [d - (du + dv) * 0.5, d + (du - dv) * 0.5, d + (dv - du) * 0.5, d + (du + dv) * 0.5];
+                        self.bundle_candidates(o, &corners, &mut cand)
+                    } else {
+                        None
+                    };
+                    let closest = |dir: Vec3| match n_cand {
+                        Some(n) => {
+                            let mut best = (f32::INFINITY, NO_PRIM);
+                            for &pi in &cand[..n] {
+                                let t = intersect(&self.prims[pi as usize], o, dir, best.0);
+                                if t < best.0 {
+                                    best = (t, pi);
+                                }
+                            }
+                            best
+                        }
+                        None => self.trace(o, dir, f32::INFINITY, false),
+                    };
+                    let centre_hit = closest(d);
+                    if centre_hit.1 != NO_PRIM {
+                        drow[u] = centre_hit.0;
+                        irow[u] = self.prims[centre_hit.1 as usize].id;
+                    } else if let Some(t) = self.ground_hit(o, d) {
+                        drow[u] = t;
+                        irow[u] = GROUND_ID;
                     }
                     let pixel_hash =
                         hash32(config.noise_seed ^ hash32((v as u32).wrapping_mul(0x0001_0000) ^ u as u32));
@@ -412,10 +478,10 @@ impl Renderer {
                         let ju = (sx + unit_float(hs)) / strata as f32 - 0.5;
                         let jv = (sy + unit_float(hash32(hs))) / strata as f32 - 0.5;
                         let ds = d + du * ju + dv * jv;
-                        acc += self.radiance(o, ds, config, hash32(hs ^ 0x27d4_eb2f), 1);
+                        acc += self.shade(o, ds, closest(ds), config, hash32(hs ^ 0x27d4_eb2f), 1);
                     }
                     let c = acc * (inv_spp * exposure);
-                    crow[u] = [linear_to_srgb(c.x), linear_to_srgb(c.y), linear_to_srgb(c.z)];
+                    crow[u] = [self.encode_srgb(c.x), self.encode_srgb(c.y), self.encode_srgb(c.z)];
                 }
             });
         let (wu, hu) = (k.width, k.height);
@@ -428,13 +494,124 @@ impl Renderer {
         }
     }
 
+    /// Gathers the primitives of the grid cells that rays between the given corner directions
+    /// can visit inside the object slab (camera above the slab). `None` when the bundle does not
+    /// descend or has more candidates than fit.
+    #[inline]
+    fn bundle_candidates(&self, o: Vec3, corners: &[Vec3; 4], out: &mut [u32; MAX_CANDIDATES]) -> Option<usize> {
+        let (mut lo, mut hi) = (Vec2::splat(f32::INFINITY), Vec2::splat(f32::NEG_INFINITY));
+        for c in corners {
+            if c.z >= 0.0 {
+                return None;
+            }
+            let inv = 1.0 / c.z;
+            for z in [self.top_z, self.ground_z] {
+                let t = (z - o.z) * inv;
+                let p = Vec2::new(o.x + c.x * t, o.y + c.y * t);
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        let g = &self.grid;
+        let a = (lo - g.origin) * g.inv_cell;
+        let b = (hi - g.origin) * g.inv_cell;
+        if b.x < 0.0 || b.y < 0.0 || a.x >= g.nx as f32 || a.y >= g.ny as f32 {
+            return Some(0);
+        }
+        let (x0, y0) = (fast_floor(a.x).max(0), fast_floor(a.y).max(0));
+        let (x1, y1) = (fast_floor(b.x).min(g.nx - 1), fast_floor(b.y).min(g.ny - 1));
+        let mut n = 0;
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                let cell = (y * g.nx + x) as usize;
+                // Cells whose objects are all below the bundle's lowest point cannot be hit,
+                // but a descending bundle always reaches the ground: no height skip here.
+                for &pi in g.cell_items(cell) {
+                    let (bl, bh) = self.prim_xy_box[pi as usize];
+                    if bl.x > hi.x || bl.y > hi.y || bh.x < lo.x || bh.y < lo.y {
+                        continue;
+                    }
+                    if !out[..n].contains(&pi) {
+                        if n == MAX_CANDIDATES {
+                            return None;
+                        }
+                        out[n] = pi;
+                        n += 1;
+                    }
+                }
+            }
+        }
+        Some(n)
+    }
+
+    /// Linear to sRGB through the lookup table (linear interpolation; clamps to `[0, 1]`).
+    #[inline]
+    fn encode_srgb(&self, c: f32) -> f32 {
+        let x = c.clamp(0.0, 1.0) * SRGB_LUT_MAX as f32;
+        let i = (x as usize).min(SRGB_LUT_MAX - 1);
+        let f = x - i as f32;
+        self.srgb_lut[i] * (1.0 - f) + self.srgb_lut[i + 1] * f
+    }
+
     /// Number of primitives.
     pub fn object_count(&self) -> usize {
         self.prims.len()
     }
 }
 
+/// Horizontal offsets `(lo, hi)` to add to an object's box so that it covers every start point
+/// (in a slab of height `slab_m`) whose ray towards any point of the sun disk can hit the box;
+/// `None` when the sun is too low for this to pay off.
+fn shadow_sweep(sun_dir: Vec3, sun_u: Vec3, sun_v: Vec3, tan_radius: f32, slab_m: f32) -> Option<(Vec3, Vec3)> {
+    let (mut lo, mut hi) = (Vec3::ZERO, Vec3::ZERO);
+    // Directions on the boundary of the sun disk, slightly enlarged (a 32-gon inscribed in the
+    // circle would miss a sliver).
+    let r = tan_radius * 1.01 + 1e-4;
+    for k in 0..32 {
+        let a = k as f32 * std::f32::consts::TAU / 32.0;
+        let l = (sun_dir + sun_u * (r * a.cos()) + sun_v * (r * a.sin())).normalize();
+        if l.z < 0.2 {
+            return None;
+        }
+        let disp = Vec3::new(l.x, l.y, 0.0) * (slab_m / l.z);
+        let m = Vec3::splat(0.02);
+        lo = lo.min(-disp - m);
+        hi = hi.max(-disp + m);
+    }
+    if (hi - lo).max_element() > 12.0 {
+        return None;
+    }
+    Some((lo, hi))
+}
+
+const MAX_CANDIDATES: usize = 48;
+const SRGB_LUT_MAX: usize = 4096;
+
+/// `floor` without a libm call (the baseline x86-64 target has no `roundss`).
+#[inline]
+fn fast_floor(x: f32) -> i32 {
+    let i = x as i32;
+    i - i32::from(x < i as f32)
+}
+
 impl Grid {
+    /// The cell containing world point `p` (its x, y), or `None` outside the grid.
+    #[inline]
+    fn cell_of(&self, p: Vec3) -> Option<usize> {
+        let x = (p.x - self.origin.x) * self.inv_cell;
+        let y = (p.y - self.origin.y) * self.inv_cell;
+        if !(x >= 0.0 && y >= 0.0 && x < self.nx as f32 && y < self.ny as f32) {
+            return None;
+        }
+        Some(y as usize * self.nx as usize + x as usize)
+    }
+
+    /// Primitive indices listed in `cell`.
+    #[inline]
+    fn cell_items(&self, cell: usize) -> &[u32] {
+        &self.items[self.cell_start[cell] as usize..self.cell_start[cell + 1] as usize]
+    }
+
     fn build(boxes: &[(Vec3, Vec3)], ground_z: f32) -> Self {
         let cell_m = GRID_CELL_M;
         let (mut lo, mut hi) = (Vec2::splat(f32::INFINITY), Vec2::splat(f32::NEG_INFINITY));
@@ -490,31 +667,29 @@ impl Grid {
 #[inline]
 fn intersect(p: &Prim, o: Vec3, d: Vec3, t_max: f32) -> f32 {
     const T_MIN: f32 = 1e-5;
-    let ol = p.object_from_world * (o - p.centre);
+    // Bounding-sphere rejection (exact test for spheres is below).
+    let oc = o - p.centre;
+    let b = oc.dot(d);
+    let cc = oc.length_squared() - p.bound_r2;
+    if (cc > 0.0 && b > 0.0) || b * b < d.length_squared() * cc {
+        return f32::INFINITY;
+    }
+    if p.shape == Shape::Sphere {
+        let a = d.length_squared();
+        let sq = (b * b - a * cc).sqrt();
+        let t = (-b - sq) / a;
+        if t > T_MIN && t < t_max {
+            return t;
+        }
+        let t = (-b + sq) / a;
+        return if t > T_MIN && t < t_max { t } else { f32::INFINITY };
+    }
+    let ol = p.object_from_world * oc;
     let dl = p.object_from_world * d;
     let s = p.scale;
     let miss = f32::INFINITY;
     match p.shape {
-        Shape::Sphere => {
-            let a = dl.length_squared();
-            let b = ol.dot(dl);
-            let c = ol.length_squared() - s * s;
-            let disc = b * b - a * c;
-            if disc < 0.0 {
-                return miss;
-            }
-            let sq = disc.sqrt();
-            let t = (-b - sq) / a;
-            if t > T_MIN && t < t_max {
-                return t;
-            }
-            let t = (-b + sq) / a;
-            if t > T_MIN && t < t_max {
-                t
-            } else {
-                miss
-            }
-        }
+        Shape::Sphere => miss, // handled above in world space
         Shape::Cube => {
             let inv = dl.recip();
             let ta = (Vec3::splat(-s) - ol) * inv;
