@@ -3,7 +3,7 @@
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
-use sgam_core::{is_valid_depth, Camera, RgbdFrame, Rigid3, Vec2};
+use sgam_core::{is_valid_depth, Camera, RgbdFrame, Rigid3};
 
 use crate::block::{Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS};
 use crate::mesh::BlockMesh;
@@ -44,6 +44,8 @@ pub struct TsdfMap {
     /// Blocks whose voxels changed since their neighbourhood was last meshed.
     pub(crate) dirty: Vec<u32>,
     pub(crate) is_dirty: Vec<bool>,
+    /// Per block: [`HAS_POSITIVE`] / [`HAS_NEGATIVE`] over its observed voxels.
+    pub(crate) sign_flags: Vec<u8>,
     /// Super-block key -> ids of its blocks (ascending).
     pub(crate) super_index: FxHashMap<IVec3, Vec<u32>>,
     /// Weight threshold the cached block meshes were built with.
@@ -62,6 +64,7 @@ impl TsdfMap {
             meshes: Vec::new(),
             dirty: Vec::new(),
             is_dirty: Vec::new(),
+            sign_flags: Vec::new(),
             super_index: FxHashMap::default(),
             mesh_weight_threshold: None,
         }
@@ -120,9 +123,21 @@ impl TsdfMap {
         self.blocks.push(Block::default());
         self.meshes.push(BlockMesh::default());
         self.is_dirty.push(false);
+        self.sign_flags.push(0);
         let sk = IVec3::new(key.x.div_euclid(SUPER_SIZE), key.y.div_euclid(SUPER_SIZE), key.z.div_euclid(SUPER_SIZE));
         self.super_index.entry(sk).or_default().push(id);
         (id, true)
+    }
+
+    /// Recomputes the sign summary of block `id` from its voxels.
+    pub(crate) fn refresh_sign_flags(&mut self, id: u32) {
+        let mut flags = 0u8;
+        for v in self.blocks[id as usize].voxels.iter() {
+            if v.weight > 0.0 {
+                flags |= if v.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
+            }
+        }
+        self.sign_flags[id as usize] = flags;
     }
 
     pub(crate) fn mark_dirty(&mut self, id: u32) {
@@ -167,16 +182,20 @@ impl TsdfMap {
         ids.sort_unstable();
         let camera_from_world = camera.world_from_camera.inverse();
         let ctx = UpdateContext::new(frame, camera, &camera_from_world, &cfg);
-        let updated: Vec<(u32, usize)> = {
+        let updated: Vec<(u32, usize, u8)> = {
             let blocks = disjoint_mut(&mut self.blocks, &ids);
             let keys_of = &self.keys;
             blocks
                 .into_par_iter()
                 .zip(ids.par_iter())
-                .map(|(block, &id)| (id, ctx.update_block(block, keys_of[id as usize])))
+                .map(|(block, &id)| {
+                    let (n, flags) = ctx.update_block(block, keys_of[id as usize]);
+                    (id, n, flags)
+                })
                 .collect()
         };
-        for (id, n) in updated {
+        for (id, n, flags) in updated {
+            self.sign_flags[id as usize] = flags;
             if n > 0 {
                 stats.blocks_updated += 1;
                 stats.voxels_updated += n;
@@ -214,23 +233,34 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
     let wfc: Rigid3 = camera.world_from_camera;
     let rows_per_task = 8usize;
     let depth = &frame.depth_m.data;
+    if depth.len() < w * h {
+        return (Vec::new(), 0);
+    }
+    let origin = wfc.translation * inv_block;
+    let r = wfc.rotation;
+    let (inv_fx, inv_fy) = (1.0 / k.fx, 1.0 / k.fy);
+    let (d_lo, d_hi) = (cfg.depth_min_m, cfg.depth_max_m);
     let (set, used) = (0..h.div_ceil(rows_per_task))
         .into_par_iter()
         .fold(
             || (FxHashSet::<IVec3>::default(), 0usize),
             |(mut set, mut used), task| {
-                let mut recent = [IVec3::MAX; 4];
+                let mut recent = [IVec3::MAX; 8];
                 let mut slot = 0;
                 for v in task * rows_per_task..((task + 1) * rows_per_task).min(h) {
-                    for u in 0..w {
-                        let d = depth[v * w + u];
-                        if !is_valid_depth(d) || d < cfg.depth_min_m || d > cfg.depth_max_m {
+                    // World ray (camera z = 1) of pixel (u, v) = row_dir + u * du, in block units.
+                    let y = (v as f32 - k.cy) * inv_fy;
+                    let row_dir = (r.y_axis * y + r.z_axis - r.x_axis * (k.cx * inv_fx)) * inv_block;
+                    let du = r.x_axis * (inv_fx * inv_block);
+                    let row = &depth[v * w..(v + 1) * w];
+                    for (u, &d) in row.iter().enumerate() {
+                        if !(is_valid_depth(d) && d >= d_lo && d <= d_hi) {
                             continue;
                         }
                         used += 1;
-                        let ray = k.ray_z1(Vec2::new(u as f32, v as f32));
-                        let a = wfc.transform_point(ray * (d - trunc).max(0.0)) * inv_block;
-                        let b = wfc.transform_point(ray * (d + trunc)) * inv_block;
+                        let dir = row_dir + du * u as f32;
+                        let a = origin + dir * (d - trunc).max(0.0);
+                        let b = origin + dir * (d + trunc);
                         walk_cells(a, b, |cell| {
                             if !recent.contains(&cell) {
                                 recent[slot] = cell;
@@ -245,14 +275,10 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
         )
         .reduce(
             || (FxHashSet::default(), 0),
-            |(mut a, na), (b, nb)| {
-                if a.len() < b.len() {
-                    let mut b = b;
-                    b.extend(a);
-                    return (b, na + nb);
-                }
-                a.extend(b);
-                (a, na + nb)
+            |(a, na), (b, nb)| {
+                let (mut big, small) = if a.len() >= b.len() { (a, b) } else { (b, a) };
+                big.extend(small);
+                (big, na + nb)
             },
         );
     let mut keys: Vec<IVec3> = set.into_iter().collect();
@@ -314,7 +340,11 @@ fn sign(x: f32) -> i32 {
 
 /// Per-frame constants of the voxel update.
 struct UpdateContext<'a> {
-    frame: &'a RgbdFrame,
+    /// Usable depth per pixel (NaN where invalid or outside the depth range).
+    depth: Vec<f32>,
+    colour: &'a [[f32; 3]],
+    width: usize,
+    height: usize,
     camera_from_world: Rigid3,
     fx: f32,
     fy: f32,
@@ -322,16 +352,30 @@ struct UpdateContext<'a> {
     cy: f32,
     voxel_size_m: f32,
     trunc_m: f32,
-    depth_min_m: f32,
-    depth_max_m: f32,
     weight_cap: f32,
 }
+
+/// Sign summary bits of a block: some observed voxel is in front of / behind the surface.
+pub(crate) const HAS_POSITIVE: u8 = 1;
+pub(crate) const HAS_NEGATIVE: u8 = 2;
 
 impl<'a> UpdateContext<'a> {
     fn new(frame: &'a RgbdFrame, camera: &'a Camera, camera_from_world: &Rigid3, cfg: &TsdfConfig) -> Self {
         let k = camera.intrinsics;
+        let (d_lo, d_hi) = (cfg.depth_min_m, cfg.depth_max_m);
+        let depth = frame
+            .depth_m
+            .data
+            .iter()
+            .map(|&d| if is_valid_depth(d) && d >= d_lo && d <= d_hi { d } else { f32::NAN })
+            .collect();
+        let (width, height) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
+        let colour_ok = frame.colour.data.len() == width * height;
         Self {
-            frame,
+            depth,
+            colour: if colour_ok { &frame.colour.data } else { &[] },
+            width,
+            height,
             camera_from_world: *camera_from_world,
             fx: k.fx,
             fy: k.fy,
@@ -339,66 +383,60 @@ impl<'a> UpdateContext<'a> {
             cy: k.cy,
             voxel_size_m: cfg.voxel_size_m,
             trunc_m: cfg.trunc_m(),
-            depth_min_m: cfg.depth_min_m,
-            depth_max_m: cfg.depth_max_m,
             weight_cap: cfg.weight_cap.unwrap_or(f32::INFINITY),
         }
     }
 
-    /// Updates one block; returns the number of voxels changed.
-    fn update_block(&self, block: &mut Block, key: IVec3) -> usize {
+    /// Updates one block; returns the number of voxels changed and the block's sign summary.
+    fn update_block(&self, block: &mut Block, key: IVec3) -> (usize, u8) {
         let vs = self.voxel_size_m;
         let origin = (key * BLOCK_SIZE).as_vec3() + Vec3::splat(0.5);
         let r = self.camera_from_world.rotation;
         let base = self.camera_from_world.transform_point(origin * vs);
         let (dx, dy, dz) = (r.x_axis * vs, r.y_axis * vs, r.z_axis * vs);
-        let (w, h) = (self.frame.depth_m.width as i32, self.frame.depth_m.height as i32);
-        let depth = &self.frame.depth_m.data;
-        let colour = &self.frame.colour.data;
+        let (wf, hf) = (self.width as f32, self.height as f32);
+        let depth = &self.depth[..self.width * self.height];
         let inv_trunc = 1.0 / self.trunc_m;
+        let neg_trunc = -self.trunc_m;
         let cap_prev = self.weight_cap - 1.0;
+        // Pixel-centre rounding folded into the principal point.
+        let (cx, cy) = (self.cx + 0.5, self.cy + 0.5);
         let mut n = 0;
-        let mut i = 0usize;
-        for z in 0..BLOCK_SIZE {
-            for y in 0..BLOCK_SIZE {
-                let mut p = base + dy * y as f32 + dz * z as f32;
-                for _x in 0..BLOCK_SIZE {
-                    let pc = p;
-                    p += dx;
-                    let idx = i;
-                    i += 1;
-                    if pc.z <= 0.0 {
-                        continue;
-                    }
+        let mut flags = 0u8;
+        for (row_index, row) in block.voxels.chunks_exact_mut(BLOCK_SIZE as usize).enumerate() {
+            let (y, z) = (row_index % BLOCK_SIZE as usize, row_index / BLOCK_SIZE as usize);
+            let mut p = base + dy * y as f32 + dz * z as f32;
+            for vox in row.iter_mut() {
+                let pc = p;
+                p += dx;
+                if pc.z > 0.0 {
                     let iz = 1.0 / pc.z;
-                    let u = (self.fx * pc.x * iz + self.cx + 0.5).floor();
-                    let v = (self.fy * pc.y * iz + self.cy + 0.5).floor();
-                    if !(u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
-                        continue;
+                    let u = self.fx * pc.x * iz + cx;
+                    let v = self.fy * pc.y * iz + cy;
+                    if u >= 0.0 && v >= 0.0 && u < wf && v < hf {
+                        // Truncation is floor here (u, v >= 0): the nearest pixel.
+                        let pix = v as usize * self.width + u as usize;
+                        let sdf = depth[pix] - pc.z;
+                        if sdf >= neg_trunc {
+                            let obs = (sdf * inv_trunc).min(1.0);
+                            let wp = vox.weight.min(cap_prev);
+                            let inv = 1.0 / (wp + 1.0);
+                            vox.tsdf = (vox.tsdf * wp + obs) * inv;
+                            if let Some(c) = self.colour.get(pix) {
+                                for ch in 0..3 {
+                                    vox.colour[ch] = (vox.colour[ch] * wp + c[ch]) * inv;
+                                }
+                            }
+                            vox.weight = wp + 1.0;
+                            n += 1;
+                        }
                     }
-                    let pix = v as usize * w as usize + u as usize;
-                    let d = depth[pix];
-                    if !(is_valid_depth(d) && d >= self.depth_min_m && d <= self.depth_max_m) {
-                        continue;
-                    }
-                    let sdf = d - pc.z;
-                    if sdf < -self.trunc_m {
-                        continue;
-                    }
-                    let obs = (sdf * inv_trunc).min(1.0);
-                    let vox = &mut block.voxels[idx];
-                    let wp = vox.weight.min(cap_prev);
-                    let inv = 1.0 / (wp + 1.0);
-                    vox.tsdf = (vox.tsdf * wp + obs) * inv;
-                    let c = colour.get(pix).copied().unwrap_or([0.0; 3]);
-                    for ch in 0..3 {
-                        vox.colour[ch] = (vox.colour[ch] * wp + c[ch]) * inv;
-                    }
-                    vox.weight = wp + 1.0;
-                    n += 1;
+                }
+                if vox.weight > 0.0 {
+                    flags |= if vox.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
                 }
             }
         }
-        n
+        (n, flags)
     }
 }

@@ -6,7 +6,7 @@ use rustc_hash::FxHashMap;
 use sgam_core::TriMesh;
 
 use crate::block::{local_index, Block, Voxel, BLOCK_SIZE};
-use crate::map::{TsdfMap, SUPER_SIZE};
+use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, SUPER_SIZE};
 use crate::mc_table::{edge_axis, edge_start, table};
 
 /// Global id of a mesh vertex: the marching-cubes edge from global voxel `g` to `g + e_axis`.
@@ -213,15 +213,20 @@ impl TsdfMap {
     /// Marching cubes over the 8^3 cells of block `id`.
     fn mesh_block(&self, id: u32, weight_threshold: f32) -> BlockMesh {
         let key = self.keys[id as usize];
+        let mut flags = 0u8;
         let neighbours: [Option<&Block>; 8] = std::array::from_fn(|o| {
             let o = o as i32;
             let nk = key + IVec3::new(o & 1, (o >> 1) & 1, o >> 2);
-            if o == 0 {
-                Some(&self.blocks[id as usize])
-            } else {
-                self.index.get(&nk).map(|&i| &self.blocks[i as usize])
-            }
+            let nid = if o == 0 { Some(id) } else { self.index.get(&nk).copied() };
+            nid.map(|i| {
+                flags |= self.sign_flags[i as usize];
+                &self.blocks[i as usize]
+            })
         });
+        // No observed voxel on one side of the surface: no zero crossing (skip the gather).
+        if flags != HAS_POSITIVE | HAS_NEGATIVE {
+            return BlockMesh::default();
+        }
         let mut grid = [Voxel::EMPTY; GRID * GRID * GRID];
         let mut any_inside = false;
         let mut any_outside = false;

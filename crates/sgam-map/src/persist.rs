@@ -127,6 +127,7 @@ impl TsdfMap {
                 vox.colour = [cur.f32()?, cur.f32()?, cur.f32()?];
             }
             map.blocks[id as usize] = block;
+            map.refresh_sign_flags(id);
             map.mark_dirty(id);
         }
         Ok(map)
