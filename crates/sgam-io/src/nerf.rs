@@ -115,8 +115,8 @@ fn camera_json(k: &Intrinsics) -> CameraJson {
     CameraJson {
         fl_x: Some(k.fx as f64),
         fl_y: Some(k.fy as f64),
-        cx: Some((k.cx + PIXEL_EDGE_OFFSET) as f64),
-        cy: Some((k.cy + PIXEL_EDGE_OFFSET) as f64),
+        cx: Some(k.cx as f64 + PIXEL_EDGE_OFFSET as f64),
+        cy: Some(k.cy as f64 + PIXEL_EDGE_OFFSET as f64),
         w: Some(k.width as f64),
         h: Some(k.height as f64),
         camera_angle_x: Some(k.fov_x_rad() as f64),
