@@ -9,7 +9,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
 use sgam_core::{trajectory, Camera, Intrinsics, Refiner, RgbdFrame, Rigid3, Vec3};
-use sgam_map::{TsdfConfig, TsdfMap, WarpConfig};
+use sgam_map::{SourceSelection, TsdfConfig, TsdfMap, WarpConfig};
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
 
 use crate::fuse::{median, save_map, write_mesh};
@@ -410,7 +410,7 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resumed: bool, seed: Se
     tsdf.validate().context("invalid map parameters")?;
     let config = GeneratorConfig {
         tsdf,
-        warp: WarpConfig::default(),
+        warp: WarpConfig { selection: SourceSelection::NearestCamera, ..WarpConfig::default() },
         k_sources: args.k_sources.unwrap_or(p.k_sources),
         source_radius_m: args.source_radius.unwrap_or(p.source_radius_m),
         weight_threshold: 1.0,

@@ -1,0 +1,133 @@
+//! Training pairs from the synthetic world, built with the same render + warp path that
+//! generation uses (so stage 2 trains on exactly the kind of guidance it will see).
+//!
+//! - Stage 1: a clean random crop of a synthetic view (input = target, nothing missing).
+//! - Stage 2: a target crop, plus a map fused from neighbouring views *behind* it on the
+//!   generation grid (offsets of 0.408 m within 1 m whose zig-zag diagonal precedes the target's,
+//!   as the authors' trajectory sees them); the guidance is `map.render` at the target crop,
+//!   coloured by `warp_colour` from the nearest 5 of those views; the target is the ground truth.
+//!
+//! A crop is rendered directly by shifting the principal point (a `crop x crop` camera whose
+//! pixels are exactly the crop of the full `res x res` view), which is 4-16x cheaper than
+//! rendering the whole view.
+
+use std::sync::Arc;
+
+use anyhow::Result;
+use rand::seq::SliceRandom;
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use sgam_core::{Camera, Intrinsics, RgbdFrame, Vec3};
+use sgam_map::{warp_colour, SourceView, TsdfConfig, TsdfMap, WarpConfig};
+use sgam_model::{PairSource, Stage, TrainPair};
+use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
+
+/// Synthetic pair source for either stage.
+#[derive(Debug)]
+pub struct SynthPairs {
+    stage: Stage,
+    scene_seeds: Vec<u64>,
+    res: u32,
+    render: RenderConfig,
+    cache: Vec<(u64, Arc<Renderer>)>,
+    cache_size: usize,
+    step_m: f32,
+    source_radius_m: f32,
+    k_sources: usize,
+}
+
+impl SynthPairs {
+    /// Pairs from scenes `scene_seeds` at full resolution `res` (crops are taken from it).
+    pub fn new(stage: Stage, scene_seeds: Vec<u64>, res: u32) -> Self {
+        Self {
+            stage,
+            scene_seeds,
+            res,
+            render: RenderConfig::default(),
+            cache: Vec::new(),
+            cache_size: 4,
+            step_m: 0.408,
+            source_radius_m: 1.0,
+            k_sources: 5,
+        }
+    }
+
+    fn renderer(&mut self, seed: u64) -> Arc<Renderer> {
+        if let Some(pos) = self.cache.iter().position(|(s, _)| *s == seed) {
+            let entry = self.cache.remove(pos);
+            let r = entry.1.clone();
+            self.cache.push(entry);
+            return r;
+        }
+        let r = Arc::new(Renderer::new(&Scene::generate(seed, &SceneConfig::default())));
+        self.cache.push((seed, r.clone()));
+        if self.cache.len() > self.cache_size {
+            self.cache.remove(0);
+        }
+        r
+    }
+
+    /// One pair: target crop (and, for stage 2, its guidance).
+    pub fn pair(&mut self, crop: u32, rng: &mut ChaCha8Rng) -> TrainPair {
+        let seed = self.scene_seeds[rng.random_range(0..self.scene_seeds.len())];
+        let renderer = self.renderer(seed);
+        let full = dataset_intrinsics(self.res);
+        let centre = Vec3::new(rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0), 0.0);
+        let target = blender_camera(centre, sgam_synth::CAMERA_PITCH_RAD, 0.0, full);
+        let crop = crop.min(self.res);
+        let (u0, v0) = (rng.random_range(0..=self.res - crop), rng.random_range(0..=self.res - crop));
+        let crop_k = Intrinsics { width: crop, height: crop, cx: full.cx - u0 as f32, cy: full.cy - v0 as f32, ..full };
+        let crop_cam = Camera::new(crop_k, target.world_from_camera);
+        let truth = renderer.render(&crop_cam, &self.render).frame;
+        if self.stage == Stage::One {
+            let n = truth.depth_m.len();
+            return TrainPair { input: truth.clone(), missing: vec![false; n], target: truth };
+        }
+        // views behind the target on the zig-zag grid, within the source radius
+        let mut offsets: Vec<(i32, i32)> = Vec::new();
+        for di in -2i32..=2 {
+            for dj in -2i32..=2 {
+                let d = self.step_m * ((di * di + dj * dj) as f32).sqrt();
+                if di + dj < 0 && d <= self.source_radius_m {
+                    offsets.push((di, dj));
+                }
+            }
+        }
+        offsets.shuffle(rng);
+        let keep = rng.random_range(2..=offsets.len());
+        offsets.truncate(keep);
+        offsets.sort_by_key(|(di, dj)| di * di + dj * dj);
+        let mut map = TsdfMap::new(TsdfConfig::default());
+        let views: Vec<(Camera, RgbdFrame)> = offsets
+            .iter()
+            .map(|(di, dj)| {
+                let c = centre + Vec3::new(*di as f32 * self.step_m, *dj as f32 * self.step_m, 0.0);
+                let cam = blender_camera(c, sgam_synth::CAMERA_PITCH_RAD, 0.0, full);
+                let f = renderer.render(&cam, &self.render).frame;
+                (cam, f)
+            })
+            .collect();
+        for (cam, f) in &views {
+            map.integrate(f, cam);
+        }
+        map.update_mesh(1.0);
+        let rendered = map.render(&crop_cam);
+        let sources: Vec<SourceView<'_>> =
+            views.iter().take(self.k_sources).map(|(c, f)| SourceView { camera: c, frame: f }).collect();
+        let warped = warp_colour(&crop_cam, &rendered.depth_m, &sources, &WarpConfig::default());
+        let mut input = RgbdFrame { colour: warped.colour, depth_m: rendered.depth_m };
+        for (i, m) in warped.missing.iter().enumerate() {
+            if *m {
+                input.depth_m.data[i] = 0.0;
+                input.colour.data[i] = [0.0; 3];
+            }
+        }
+        TrainPair { input, missing: warped.missing, target: truth }
+    }
+}
+
+impl PairSource for SynthPairs {
+    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>> {
+        Ok((0..batch).map(|_| self.pair(crop, rng)).collect())
+    }
+}

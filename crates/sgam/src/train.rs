@@ -1,0 +1,179 @@
+//! `sgam train stage1|stage2`: train the VQ model on the synthetic world, on the fly.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand, ValueEnum};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use sgam_core::{Image, RgbdFrame};
+use sgam_model::train::ValidationImage;
+use sgam_model::{ModelConfig, PairSource, Stage, TrainConfig, TrainPair};
+
+use crate::generate::HELD_OUT_SEED_BASE;
+use crate::pairs::SynthPairs;
+use crate::progress;
+
+/// Model architecture presets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Preset {
+    /// The CPU design (fast at 256x256 on 2 cores).
+    Compact,
+    /// The SGAM authors' VQGAN (~68M parameters; needs a GPU to train in reasonable time).
+    Paper,
+    /// A very small model for tests and smoke runs.
+    Tiny,
+}
+
+/// `sgam train` stages.
+#[derive(Debug, Subcommand)]
+pub enum TrainCommand {
+    /// Stage 1: autoencode clean RGB-D (codebook, encoder and decoder all train).
+    Stage1(TrainArgs),
+    /// Stage 2: fine-tune the encoder and mask conv on incomplete -> complete pairs built by the
+    /// generator's own render + warp path; codebook, quant convs and decoder frozen.
+    Stage2(TrainArgs),
+}
+
+/// Options shared by both stages.
+#[derive(Debug, Args)]
+#[command(after_help = "Examples:\n  sgam train stage1 --run runs/train-s1 --steps 20000\n  sgam train stage2 --run runs/train-s2 --init runs/train-s1/model.safetensors --steps 10000\n\nRe-running the same command resumes from the run folder's last checkpoint (weights, optimizer\nstate, step, RNG). Validation strips (input | output | target) go to RUN/val/.")]
+pub struct TrainArgs {
+    /// Run folder (checkpoints, config.json, validation images).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Architecture preset (new runs only).
+    #[arg(long, value_enum, default_value_t = Preset::Compact)]
+    pub preset: Preset,
+    /// Total optimisation steps (a resumed run continues up to this).
+    #[arg(long, default_value_t = 20_000)]
+    pub steps: u64,
+    /// Images per step.
+    #[arg(long, default_value_t = 4)]
+    pub batch: usize,
+    /// Random crop size in pixels (crops of 256x256 views).
+    #[arg(long, default_value_t = 128)]
+    pub crop: u32,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 2e-4)]
+    pub lr: f64,
+    /// Stage 1: steps without quantization first (the paper: 30k of 90k).
+    #[arg(long, default_value_t = 0)]
+    pub warmup_no_quant: u64,
+    /// Step at which the PatchGAN discriminator starts.
+    #[arg(long, default_value_t = 10_000)]
+    pub disc_start: u64,
+    /// Checkpoint every N steps.
+    #[arg(long, default_value_t = 250)]
+    pub ckpt_every: u64,
+    /// Validate (and write a strip) every N steps.
+    #[arg(long, default_value_t = 250)]
+    pub val_every: u64,
+    /// Training scenes: seeds 0..N (held-out evaluation seeds start at 1000000).
+    #[arg(long, default_value_t = 512)]
+    pub scenes: u64,
+    /// Seed of weights and batches.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Weights to start from (stage 2: the stage-1 model.safetensors).
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+}
+
+/// Validation pairs from held-out scenes (fixed).
+pub fn validation_pairs(stage: Stage, n: usize, crop: u32) -> Vec<TrainPair> {
+    let mut rng = ChaCha8Rng::seed_from_u64(12345);
+    let mut src = SynthPairs::new(stage, (HELD_OUT_SEED_BASE + 500..HELD_OUT_SEED_BASE + 504).collect(), 256);
+    (0..n).map(|_| src.pair(crop, &mut rng)).collect()
+}
+
+/// Side-by-side strip of frames' colour, one row per example.
+pub fn write_strip(path: &Path, rows: &[Vec<&RgbdFrame>]) -> Result<()> {
+    let (Some(first), true) = (rows.first().and_then(|r| r.first()), !rows.is_empty()) else { return Ok(()) };
+    let (w, h) = (first.width(), first.height());
+    let cols = rows[0].len() as u32;
+    let mut img = Image::filled(w * cols, h * rows.len() as u32, [0.0f32; 3]);
+    for (r, row) in rows.iter().enumerate() {
+        for (c, f) in row.iter().enumerate() {
+            for v in 0..h.min(f.height()) {
+                for u in 0..w.min(f.width()) {
+                    *img.at_mut(c as u32 * w + u, r as u32 * h + v) = *f.colour.at(u, v);
+                }
+            }
+        }
+    }
+    sgam_io::write_rgb_png(path, &img)?;
+    Ok(())
+}
+
+/// Runs `sgam train`.
+pub fn run(cmd: TrainCommand) -> Result<()> {
+    let (stage, args) = match cmd {
+        TrainCommand::Stage1(a) => (Stage::One, a),
+        TrainCommand::Stage2(a) => (Stage::Two, a),
+    };
+    if args.scenes == 0 || args.scenes >= HELD_OUT_SEED_BASE {
+        bail!("--scenes must be in 1..{HELD_OUT_SEED_BASE}");
+    }
+    if stage == Stage::Two && args.init.is_none() && !args.run.join("config.json").exists() {
+        bail!("stage 2 starts from a stage-1 model: pass --init RUN1/model.safetensors");
+    }
+    let model_config = match args.preset {
+        Preset::Compact => ModelConfig::compact(),
+        Preset::Paper => ModelConfig::paper(),
+        Preset::Tiny => ModelConfig::tiny(),
+    };
+    let mut cfg = TrainConfig::new(stage, args.steps);
+    cfg.batch = args.batch;
+    cfg.crop = args.crop;
+    cfg.lr = args.lr;
+    cfg.warmup_no_quant_steps = args.warmup_no_quant;
+    cfg.disc_start = args.disc_start;
+    cfg.ckpt_every = args.ckpt_every;
+    cfg.val_every = args.val_every;
+    cfg.seed = args.seed;
+    cfg.init_weights = args.init.clone();
+    let mut source = SynthPairs::new(stage, (0..args.scenes).collect(), 256);
+    let val = validation_pairs(stage, 4, args.crop);
+    std::fs::create_dir_all(args.run.join("val")).with_context(|| format!("{}: cannot create", args.run.display()))?;
+    let pb = progress::bar(args.steps, "training");
+    let mut log = Vec::new();
+    let run_dir = args.run.clone();
+    let mut on_step = |p: &sgam_model::TrainProgress| {
+        let r = &p.report;
+        pb.set_position(r.step);
+        pb.set_message(format!(
+            "loss {:.4} l1 {:.4} psnr {:.2} codes {} {:.2} img/s",
+            r.total, r.l1, r.psnr, r.active_codes, p.images_per_s
+        ));
+        log.push(format!(
+            "{{\"step\":{},\"total\":{},\"l1\":{},\"perceptual\":{},\"quant\":{},\"psnr\":{},\"active_codes\":{},\"images_per_s\":{}}}",
+            r.step, r.total, r.l1, r.perceptual, r.quant, r.psnr, r.active_codes, p.images_per_s
+        ));
+        if let Some((psnr, images)) = &p.validation {
+            pb.println(format!("step {}: validation PSNR {psnr:.2} dB", r.step));
+            let rows: Vec<Vec<&RgbdFrame>> =
+                images.iter().map(|v: &ValidationImage| vec![&v.input, &v.output, &v.target]).collect();
+            let _ = write_strip(&run_dir.join("val").join(format!("step-{:06}.png", r.step)), &rows);
+            log.push(format!("{{\"step\":{},\"val_psnr\":{psnr}}}", r.step));
+        }
+    };
+    let summary = sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
+        .map_err(anyhow::Error::new)?;
+    pb.finish_and_clear();
+    // append the loss log
+    let log_path = args.run.join("log.jsonl");
+    let mut text = std::fs::read_to_string(&log_path).unwrap_or_default();
+    for l in &log {
+        text.push_str(l);
+        text.push('\n');
+    }
+    sgam_io::write_atomic(&log_path, |w| std::io::Write::write_all(w, text.as_bytes()))?;
+    eprintln!(
+        "trained to step {} ({:.2} images/s); weights: {}",
+        summary.steps,
+        summary.images_per_s,
+        args.run.join("model.safetensors").display()
+    );
+    Ok(())
+}

@@ -1,0 +1,221 @@
+//! End-to-end tests of `sgam generate` through the real binary, on tiny synthetic worlds.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::Path;
+use std::process::Command;
+
+use sgam_core::{Camera, Vec3};
+use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
+
+fn sgam(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_sgam")).args(args).output().expect("run sgam")
+}
+
+fn ok(args: &[&str]) {
+    let out = sgam(args);
+    assert!(out.status.success(), "sgam {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+}
+
+fn seed_camera(res: u32) -> Camera {
+    blender_camera(Vec3::new(-20.0, -20.0, 0.0), sgam_synth::CAMERA_PITCH_RAD, 0.0, dataset_intrinsics(res))
+}
+
+#[test]
+fn oracle_run_reproduces_ground_truth_and_mesh_matches_scene() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    let run_s = run.to_str().unwrap();
+    ok(&["generate", "--out", run_s, "--res", "64", "--steps", "8", "--refiner", "oracle", "--no-video"]);
+    let scene = Scene::generate(1_000_000, &SceneConfig::default());
+    let renderer = Renderer::new(&scene);
+    // generated frames equal the ground-truth renders (up to 8-bit quantisation)
+    let t = sgam_io::read_nerf_transforms(&run.join("transforms.json")).unwrap();
+    assert_eq!(t.frames.len(), 9);
+    for i in [3usize, 8] {
+        let cam = Camera::new(t.intrinsics, t.frames[i].world_from_camera);
+        let truth = renderer.render(&cam, &RenderConfig::default()).frame;
+        let got = sgam_io::read_rgb(&run.join(&t.frames[i].file_path)).unwrap();
+        let psnr = sgam_metrics::psnr(&got, &truth.colour, None).unwrap();
+        assert!(psnr > 40.0, "frame {i}: PSNR {psnr}");
+    }
+    // the fused mesh lies on the scene: near the ground or within an object's bounds
+    let mesh = sgam_io::read_ply(&run.join("mesh.ply")).unwrap();
+    assert!(mesh.positions.len() > 1000, "mesh too small: {}", mesh.positions.len());
+    let boxes: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| o.aabb()).collect();
+    let margin = 0.1; // two voxels
+    let on_scene = mesh
+        .positions
+        .iter()
+        .filter(|p| {
+            (p.z - sgam_synth::GROUND_Z_M).abs() < margin
+                || boxes.iter().any(|(lo, hi)| p.cmpge(*lo - margin).all() && p.cmple(*hi + margin).all())
+        })
+        .count();
+    let frac = on_scene as f64 / mesh.positions.len() as f64;
+    assert!(frac > 0.995, "only {:.2}% of mesh vertices lie on the scene", 100.0 * frac);
+    // every output is there
+    for f in ["mesh.glb", "run.json", "snapshot.bin", "map.bin", "rgb/00008.png", "depth/00008.npy"] {
+        assert!(run.join(f).exists(), "missing {f}");
+    }
+}
+
+#[test]
+fn revisiting_the_seed_pose_reproduces_the_seed_frame() {
+    let tmp = tempfile::tempdir().unwrap();
+    let res = 96;
+    let seed = seed_camera(res);
+    // out 3 poses and back to the seed, KITTI format (3x4 rows of world_from_camera)
+    let mut text = String::new();
+    for k in [0.0f32, 0.4, 0.8, 1.2, 0.8, 0.4, 0.0] {
+        let mut p = seed.world_from_camera;
+        p.translation += Vec3::new(k, 0.5 * k, 0.0);
+        let r = p.to_rows();
+        let row: Vec<String> = r[..3].iter().flat_map(|row| row.iter().map(|x| format!("{x:.9}"))).collect();
+        text.push_str(&row.join(" "));
+        text.push('\n');
+    }
+    let traj = tmp.path().join("loop.txt");
+    std::fs::write(&traj, text).unwrap();
+    let run = tmp.path().join("run");
+    ok(&[
+        "generate",
+        "--out",
+        run.to_str().unwrap(),
+        "--res",
+        &res.to_string(),
+        "--trajectory",
+        "file",
+        "--trajectory-file",
+        traj.to_str().unwrap(),
+        "--steps",
+        "6",
+        "--refiner",
+        "null",
+        "--no-video",
+    ]);
+    let first = sgam_io::read_rgb(&run.join("rgb/00000.png")).unwrap();
+    let last = sgam_io::read_rgb(&run.join("rgb/00006.png")).unwrap();
+    let psnr = sgam_metrics::psnr(&first, &last, None).unwrap();
+    assert!(psnr >= 30.0, "revisit PSNR {psnr:.2} dB");
+}
+
+fn files_under(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for sub in ["rgb", "depth"] {
+        let mut v: Vec<_> = std::fs::read_dir(dir.join(sub)).unwrap().map(|e| e.unwrap().path()).collect();
+        v.sort();
+        out.extend(v);
+    }
+    out.push(dir.join("mesh.ply"));
+    out.push(dir.join("map.bin"));
+    out.push(dir.join("transforms.json"));
+    out
+}
+
+#[test]
+fn interrupted_then_resumed_run_equals_uninterrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = tmp.path().join("a");
+    let b = tmp.path().join("b");
+    let common = ["--res", "64", "--steps", "10", "--refiner", "null", "--no-video", "--snapshot-every", "3"];
+    let mut args = vec!["generate", "--out", a.to_str().unwrap()];
+    args.extend(common);
+    ok(&args);
+    let mut args = vec!["generate", "--out", b.to_str().unwrap(), "--stop-after", "5"];
+    args.extend(common);
+    ok(&args);
+    assert!(!b.join("mesh.ply").exists(), "the interrupted run must not have finished");
+    // a second start with --out must refuse to overwrite the run
+    let mut args = vec!["generate", "--out", b.to_str().unwrap()];
+    args.extend(common);
+    let out = sgam(&args);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--resume"));
+    ok(&["generate", "--resume", b.to_str().unwrap()]);
+    let fa = files_under(&a);
+    let fb = files_under(&b);
+    assert_eq!(fa.len(), fb.len());
+    for (pa, pb) in fa.iter().zip(&fb) {
+        assert_eq!(pa.file_name(), pb.file_name());
+        let same = std::fs::read(pa).unwrap() == std::fs::read(pb).unwrap();
+        assert!(same, "{} differs after resume", pa.file_name().unwrap().to_string_lossy());
+    }
+}
+
+#[test]
+fn transforms_json_reads_back_through_our_sequence_reader() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    ok(&["generate", "--out", run.to_str().unwrap(), "--res", "48", "--steps", "3", "--refiner", "null", "--no-video"]);
+    let seq = sgam_io::Sequence::open(&run).unwrap();
+    assert_eq!(seq.len(), 4);
+    let seed = seed_camera(48);
+    let c0 = seq.camera(0);
+    assert!((c0.world_from_camera.translation - seed.world_from_camera.translation).length() < 1e-4);
+    let (ang, _) = c0.world_from_camera.distance_to(&seed.world_from_camera);
+    assert!(ang < 1e-4);
+    assert!((c0.intrinsics.fx - seed.intrinsics.fx).abs() < 1e-3);
+    let f = seq.read_frame(2).unwrap();
+    assert_eq!((f.width(), f.height()), (48, 48));
+    assert!(f.valid_fraction() > 0.9);
+}
+
+#[test]
+fn bad_seed_and_trajectory_inputs_give_clear_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out_dir = tmp.path().join("x");
+    let o = out_dir.to_str().unwrap();
+    // missing seed image
+    let out = sgam(&[
+        "generate",
+        "--out",
+        o,
+        "--seed-rgb",
+        "/nonexistent/im.png",
+        "--seed-depth",
+        "/nonexistent/d.png",
+        "--intrinsics",
+        "100,100,32,32",
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/im.png"));
+    // malformed intrinsics
+    let out = sgam(&["generate", "--out", o, "--seed-rgb", "a.png", "--seed-depth", "b.png", "--intrinsics", "1,2,x"]);
+    assert!(!out.status.success());
+    // garbage trajectory file
+    let bad = tmp.path().join("traj.txt");
+    std::fs::write(&bad, "1 2 3\nnot numbers at all\n").unwrap();
+    let out = sgam(&[
+        "generate",
+        "--out",
+        o,
+        "--res",
+        "32",
+        "--trajectory",
+        "file",
+        "--trajectory-file",
+        bad.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("traj.txt"), "{}", String::from_utf8_lossy(&out.stderr));
+    // non-rigid pose in a KITTI file
+    std::fs::write(&bad, "2 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1 0\n").unwrap();
+    let out = sgam(&[
+        "generate",
+        "--out",
+        o,
+        "--res",
+        "32",
+        "--trajectory",
+        "file",
+        "--trajectory-file",
+        bad.to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("traj.txt") && err.contains("rigid"), "{err}");
+    // resume of a folder without a run
+    let out = sgam(&["generate", "--resume", tmp.path().to_str().unwrap()]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("snapshot"));
+}
