@@ -55,7 +55,7 @@ pub const GROUND_HALF_EXTENT_M: f32 = 100.0;
 /// Blender Euler x angle of the sun (rad): light travels along `Rx(0.5) * (0, 0, -1)`.
 pub const SUN_EULER_X_RAD: f32 = 0.5;
 /// Angular radius of the sun disk used for soft shadows (rad).
-pub const SUN_ANGULAR_RADIUS_RAD: f32 = 0.05;
+pub const SUN_ANGULAR_RADIUS_RAD: f32 = 0.03;
 
 /// Timing of a full-scene render (see [`time_scene_render`]).
 #[derive(Debug, Clone, Copy, PartialEq)]

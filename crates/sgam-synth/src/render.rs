@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sgam_core::{Camera, Image, RgbdFrame};
 
-use crate::scene::{Material, Scene, Shape};
+use crate::scene::{linear_to_srgb, Material, Scene, Shape};
 
 /// Object id of the ground in [`SynthFrame::object_id`].
 pub const GROUND_ID: u32 = 0;
@@ -109,6 +109,7 @@ pub struct Renderer {
     srgb_lut: Vec<f32>,
     sun_irradiance: f32,
     sky_irradiance: f32,
+    ground_bounce_irradiance: f32,
     ground_albedo: Vec3,
     sky_radiance: Vec3,
 }
@@ -121,15 +122,6 @@ fn srgb_to_linear(c: f32) -> f32 {
         c / 12.92
     } else {
         ((c + 0.055) / 1.055).powf(2.4)
-    }
-}
-
-fn linear_to_srgb(c: f32) -> f32 {
-    let c = c.clamp(0.0, 1.0);
-    if c <= 0.003_130_8 {
-        12.92 * c
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
     }
 }
 
@@ -203,6 +195,7 @@ impl Renderer {
             srgb_lut: (0..=SRGB_LUT_MAX).map(|i| linear_to_srgb(i as f32 / SRGB_LUT_MAX as f32)).collect(),
             sun_irradiance: scene.sun_irradiance,
             sky_irradiance: scene.sky_irradiance,
+            ground_bounce_irradiance: scene.ground_bounce_irradiance,
             ground_albedo: Vec3::from_array(scene.ground_colour.map(srgb_to_linear)),
             sky_radiance: Vec3::from_array(scene.sky_colour),
         }
@@ -365,8 +358,8 @@ impl Renderer {
             }
             sun = acc / rays as f32;
         }
-        let sky = 0.5 + 0.5 * n.z;
-        albedo * (self.sun_irradiance * sun + self.sky_irradiance * sky)
+        let up = 0.5 + 0.5 * n.z;
+        albedo * (self.sun_irradiance * sun + self.sky_irradiance * up + self.ground_bounce_irradiance * (1.0 - up))
     }
 
     /// Radiance along one camera (or reflected) ray; `depth` counts reflections left.

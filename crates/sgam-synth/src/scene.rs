@@ -212,6 +212,9 @@ pub struct Scene {
     pub sun_irradiance: f32,
     /// Sky (ambient) irradiance on an upward-facing surface (linear units).
     pub sky_irradiance: f32,
+    /// Light bounced off the (white) ground onto a downward-facing surface (linear units); it
+    /// stands in for Cycles' global illumination on the objects' lower sides.
+    pub ground_bounce_irradiance: f32,
     /// Radiance seen in rays that hit nothing, linear RGB.
     pub sky_colour: [f32; 3],
 }
@@ -387,7 +390,8 @@ impl Scene {
             let jitter_m = jitters[layer.min(jitters.len() - 1)].max(0.0);
             let shape = shapes[rng.random_range(0..shapes.len())];
             let scale = scales[rng.random_range(0..scales.len())];
-            let colour = [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()];
+            // Blender-style random base colour: uniform in linear RGB, stored as sRGB.
+            let colour = [rng.random::<f32>(), rng.random::<f32>(), rng.random::<f32>()].map(linear_to_srgb);
             let m: f32 = rng.random();
             let material = if m < config.material_mix.metal_fraction {
                 Material::Metal
@@ -479,8 +483,9 @@ impl Scene {
             objects,
             sun_dir: paper_sun_dir(),
             sun_angular_radius_rad: crate::SUN_ANGULAR_RADIUS_RAD,
-            sun_irradiance: 1.0,
-            sky_irradiance: 0.45,
+            sun_irradiance: 0.47,
+            sky_irradiance: 0.08,
+            ground_bounce_irradiance: 0.3,
             sky_colour: [0.05, 0.05, 0.05],
         }
     }
@@ -488,6 +493,16 @@ impl Scene {
     /// Highest point of any object (world z, m); the ground height when there are none.
     pub fn top_z_m(&self) -> f32 {
         self.objects.iter().map(|o| o.aabb().1.z).fold(self.ground_z_m, f32::max)
+    }
+}
+
+/// sRGB transfer of a linear value in `[0, 1]`.
+pub(crate) fn linear_to_srgb(c: f32) -> f32 {
+    let c = c.clamp(0.0, 1.0);
+    if c <= 0.003_130_8 {
+        12.92 * c
+    } else {
+        1.055 * c.powf(1.0 / 2.4) - 0.055
     }
 }
 

@@ -1,4 +1,5 @@
 //! Camera and scene conventions against the constants and, when present, the authors' template
+#![allow(clippy::unwrap_used, clippy::expect_used)]
 //! (`../shared/data/sgam-clevr-template`, read-only; the checks skip cleanly without it).
 
 use std::path::PathBuf;

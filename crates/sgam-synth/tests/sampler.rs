@@ -1,4 +1,5 @@
 //! The on-the-fly training sampler.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::sync::Arc;
 

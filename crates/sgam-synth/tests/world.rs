@@ -1,4 +1,5 @@
 //! Scene generation and rendering invariants.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use glam::{Mat3, Vec2, Vec3};
 use rand::{Rng, SeedableRng};
