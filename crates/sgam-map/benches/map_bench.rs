@@ -15,6 +15,18 @@ use std::time::Instant;
 use sgam_core::{Camera, Image, Intrinsics, RgbdFrame, Rigid3, Vec2, Vec3};
 use sgam_map::{warp_colour, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
+/// CPU time of this process (all threads) in milliseconds, from /proc (Linux); 0 elsewhere.
+/// Unlike wall time it does not count time spent waiting for a core on a loaded machine.
+fn cpu_ms() -> f64 {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else { return 0.0 };
+    tasks
+        .filter_map(|t| t.ok())
+        .filter_map(|t| std::fs::read_to_string(t.path().join("schedstat")).ok())
+        .filter_map(|s| s.split_whitespace().next().and_then(|x| x.parse::<f64>().ok()))
+        .sum::<f64>()
+        / 1e6
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -77,17 +89,23 @@ fn bench_clevr() {
     let cams: Vec<Camera> = (0..steps).map(|i| clevr_camera(-20.0 + 0.408 * i as f32, -20.0)).collect();
     let frames: Vec<RgbdFrame> = cams.iter().map(clevr_frame).collect();
     let (mut t_int, mut t_mesh, mut t_render, mut t_warp, mut t_all) = (vec![], vec![], vec![], vec![], vec![]);
+    let mut cpu: [Vec<f64>; 5] = Default::default();
     for i in 0..steps {
+        let c0 = cpu_ms();
         let t0 = Instant::now();
         let rendered = map.render(&cams[i]);
+        let c1 = cpu_ms();
         let t1 = Instant::now();
         let sources: Vec<SourceView> =
             (i.saturating_sub(5)..i).map(|j| SourceView { camera: &cams[j], frame: &frames[j] }).collect();
         let warped = warp_colour(&cams[i], &rendered.depth_m, &sources, &WarpConfig::default());
+        let c2 = cpu_ms();
         let t2 = Instant::now();
         map.integrate(&frames[i], &cams[i]);
+        let c3 = cpu_ms();
         let t3 = Instant::now();
         map.update_mesh(1.0);
+        let c4 = cpu_ms();
         let t4 = Instant::now();
         std::hint::black_box(&warped);
         if i >= 5 {
@@ -96,8 +114,17 @@ fn bench_clevr() {
             t_int.push((t3 - t2).as_secs_f64() * 1e3);
             t_mesh.push((t4 - t3).as_secs_f64() * 1e3);
             t_all.push((t4 - t0).as_secs_f64() * 1e3);
+            cpu[0].push(c3 - c2);
+            cpu[1].push(c4 - c3);
+            cpu[2].push(c1 - c0);
+            cpu[3].push(c2 - c1);
+            cpu[4].push(c4 - c0);
         }
     }
+    let [c_int, c_mesh, c_render, c_warp, c_all] = cpu.map(median);
+    println!(
+        "{{\"subject\":\"clevr256_cpu\",\"integrate_ms\":{c_int:.3},\"mesh_ms\":{c_mesh:.3},\"render_ms\":{c_render:.3},\"warp_ms\":{c_warp:.3},\"median_ms\":{c_all:.3}}}"
+    );
     println!(
         "{{\"subject\":\"clevr256\",\"steps\":{},\"integrate_ms\":{:.3},\"mesh_ms\":{:.3},\"render_ms\":{:.3},\"warp_ms\":{:.3},\"median_ms\":{:.3},\"blocks\":{}}}",
         t_all.len(),
@@ -155,11 +182,16 @@ fn bench_7scenes(dir: &Path) {
         let mut map = TsdfMap::new(cfg);
         let (mut t_int, mut t_mesh) = (vec![], vec![]);
         let start = Instant::now();
+        let (mut c_int, mut c_mesh) = (0.0, 0.0);
         for (cam, f) in &frames {
+            let c0 = cpu_ms();
             let t0 = Instant::now();
             map.integrate(f, cam);
+            let c1 = cpu_ms();
             let t1 = Instant::now();
             map.update_mesh(1.0);
+            c_int += c1 - c0;
+            c_mesh += cpu_ms() - c1;
             t_int.push((t1 - t0).as_secs_f64() * 1e3);
             t_mesh.push(t1.elapsed().as_secs_f64() * 1e3);
         }
@@ -169,7 +201,7 @@ fn bench_7scenes(dir: &Path) {
         let total = start.elapsed().as_secs_f64() * 1e3;
         let n = frames.len() as f64;
         println!(
-            "{{\"subject\":\"7scenes640\",\"repeat\":{repeat},\"frames\":{},\"integrate_ms\":{:.3},\"mesh_ms\":{:.3},\"extract_ms\":{:.3},\"total_ms_per_frame\":{:.3},\"blocks\":{},\"vertices\":{},\"triangles\":{},\"memory_mb\":{:.1}}}",
+            "{{\"subject\":\"7scenes640\",\"repeat\":{repeat},\"frames\":{},\"integrate_ms\":{:.3},\"mesh_ms\":{:.3},\"extract_ms\":{:.3},\"total_ms_per_frame\":{:.3},\"blocks\":{},\"vertices\":{},\"triangles\":{},\"memory_mb\":{:.1},\"cpu_integrate_ms_mean\":{:.3},\"cpu_mesh_ms_mean\":{:.3}}}",
             frames.len(),
             median(t_int),
             median(t_mesh),
@@ -178,7 +210,9 @@ fn bench_7scenes(dir: &Path) {
             map.block_count(),
             mesh.positions.len(),
             mesh.triangles.len(),
-            map.memory_bytes() as f64 / 1e6
+            map.memory_bytes() as f64 / 1e6,
+            c_int / n,
+            c_mesh / n
         );
     }
 }

@@ -227,25 +227,31 @@ impl TsdfMap {
         if flags != HAS_POSITIVE | HAS_NEGATIVE {
             return BlockMesh::default();
         }
-        let mut grid = [Voxel::EMPTY; GRID * GRID * GRID];
+        // TSDF per grid point, NaN where unobserved or below the weight threshold.
+        let mut val = [f32::NAN; GRID * GRID * GRID];
         let mut any_inside = false;
         let mut any_outside = false;
-        for z in 0..GRID as i32 {
-            for y in 0..GRID as i32 {
-                for x in 0..GRID as i32 {
-                    let o = (x == BLOCK_SIZE) as usize
-                        | ((y == BLOCK_SIZE) as usize) << 1
-                        | ((z == BLOCK_SIZE) as usize) << 2;
-                    if let Some(b) = neighbours[o] {
-                        let v = b.voxels[local_index(x % BLOCK_SIZE, y % BLOCK_SIZE, z % BLOCK_SIZE)];
+        for z in 0..GRID {
+            for y in 0..GRID {
+                let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
+                let row = GRID * (y + GRID * z);
+                let (ly, lz) = ((y % 8) as i32, (z % 8) as i32);
+                if let Some(b) = neighbours[oyz] {
+                    let start = local_index(0, ly, lz);
+                    for (x, v) in b.voxels[start..start + BLOCK_SIZE as usize].iter().enumerate() {
                         if v.weight > 0.0 && v.weight >= weight_threshold {
-                            if v.tsdf < 0.0 {
-                                any_inside = true;
-                            } else {
-                                any_outside = true;
-                            }
+                            val[row + x] = v.tsdf;
+                            any_inside |= v.tsdf < 0.0;
+                            any_outside |= v.tsdf >= 0.0;
                         }
-                        grid[x as usize + GRID * (y as usize + GRID * z as usize)] = v;
+                    }
+                }
+                if let Some(b) = neighbours[oyz | 1] {
+                    let v = &b.voxels[local_index(0, ly, lz)];
+                    if v.weight > 0.0 && v.weight >= weight_threshold {
+                        val[row + GRID - 1] = v.tsdf;
+                        any_inside |= v.tsdf < 0.0;
+                        any_outside |= v.tsdf >= 0.0;
                     }
                 }
             }
@@ -254,29 +260,44 @@ impl TsdfMap {
         if !(any_inside && any_outside) {
             return mesh;
         }
+        let voxel_at = |gi: usize| -> Voxel {
+            let (x, y, z) = (gi % GRID, gi / GRID % GRID, gi / (GRID * GRID));
+            let o = (x == GRID - 1) as usize | ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
+            neighbours[o]
+                .map(|b| b.voxels[local_index((x % 8) as i32, (y % 8) as i32, (z % 8) as i32)])
+                .unwrap_or(Voxel::EMPTY)
+        };
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
-        let mut cache = vec![u32::MAX; GRID * GRID * GRID * 3];
-        let ok = |v: &Voxel| v.weight > 0.0 && v.weight >= weight_threshold;
+        let mut cache = [u32::MAX; GRID * GRID * GRID * 3];
+        // Per grid row (y, z): bit x set when grid point x is usable / inside.
+        let mut valid_rows = [0u16; GRID * GRID];
+        let mut neg_rows = [0u16; GRID * GRID];
+        for r in 0..GRID * GRID {
+            for x in 0..GRID {
+                let t = val[r * GRID + x];
+                valid_rows[r] |= (!t.is_nan() as u16) << x;
+                neg_rows[r] |= ((t < 0.0) as u16) << x;
+            }
+        }
         for z in 0..BLOCK_SIZE as usize {
             for y in 0..BLOCK_SIZE as usize {
-                for x in 0..BLOCK_SIZE as usize {
+                let rows = [y + GRID * z, y + 1 + GRID * z, y + GRID * (z + 1), y + 1 + GRID * (z + 1)];
+                let vm = rows.iter().fold(0x1FFu16, |m, &r| m & valid_rows[r]);
+                let n = rows.map(|r| neg_rows[r]);
+                let any = n[0] | n[1] | n[2] | n[3];
+                let all = n[0] & n[1] & n[2] & n[3];
+                // Cells whose 8 corners are usable and not all on one side.
+                let mut crossing = vm & (vm >> 1) & (any | any >> 1) & !(all & all >> 1) & 0xFF;
+                while crossing != 0 {
+                    let x = crossing.trailing_zeros() as usize;
+                    crossing &= crossing - 1;
                     let base = x + GRID * (y + GRID * z);
                     let mut case = 0usize;
-                    let mut valid = true;
-                    for (c, off) in CORNER_OFFSET.iter().enumerate() {
-                        let v = &grid[base + off];
-                        if !ok(v) {
-                            valid = false;
-                            break;
-                        }
-                        if v.tsdf < 0.0 {
-                            case |= 1 << c;
-                        }
-                    }
-                    if !valid || case == 0 || case == 255 {
-                        continue;
+                    for c in 0..8 {
+                        let (dx, row) = (c & 1, c >> 1);
+                        case |= (((n[row] >> (x + dx)) & 1) as usize) << c;
                     }
                     for tri in &cases[case] {
                         let mut idx = [0u32; 3];
@@ -287,7 +308,7 @@ impl TsdfMap {
                             let slot = gi * 3 + axis;
                             if cache[slot] == u32::MAX {
                                 cache[slot] = mesh.positions.len() as u32;
-                                let (v0, v1) = (&grid[gi], &grid[gi + AXIS_STRIDE[axis]]);
+                                let (v0, v1) = (voxel_at(gi), voxel_at(gi + AXIS_STRIDE[axis]));
                                 let t = v0.tsdf / (v0.tsdf - v1.tsdf);
                                 let local = IVec3::new(
                                     (gi % GRID) as i32,

@@ -78,19 +78,18 @@ impl Frustum {
     }
 }
 
-/// A triangle in screen space: pixel coordinates, `1/z`, colour / z, and facing.
+/// A triangle in screen space: pixel coordinates, `1/z`, vertex colours, and facing.
 #[derive(Debug, Clone, Copy)]
 struct ScreenTri {
     p: [Vec2; 3],
     inv_z: [f32; 3],
-    col_z: [Vec3; 3],
+    col: [Vec3; 3],
     back: bool,
 }
 
 /// A ray hit: planar depth (metres, 0 = none) and colour.
 type Hit = (f32, [f32; 3]);
 
-const BAND_ROWS: usize = 16;
 const EDGE_EPS: f32 = 1e-5;
 
 impl TsdfMap {
@@ -137,76 +136,84 @@ impl TsdfMap {
         out.blocks_visited = ids.len();
         let (near, far) = (self.config.depth_min_m.max(1e-4), self.config.depth_max_m);
         let camera_from_world = camera.world_from_camera.inverse();
-        let per_block: Vec<Vec<ScreenTri>> =
-            ids.par_iter().map(|&id| self.project_block(id, &camera_from_world, camera, near)).collect();
-        // Bin triangles into row bands.
-        let n_bands = h.div_ceil(BAND_ROWS);
-        let mut bins: Vec<Vec<u32>> = vec![Vec::new(); n_bands];
-        let tris: Vec<ScreenTri> = per_block.into_iter().flatten().collect();
-        for (i, t) in tris.iter().enumerate() {
-            let y0 = t.p[0].y.min(t.p[1].y).min(t.p[2].y).ceil().max(0.0);
-            let y1 = t.p[0].y.max(t.p[1].y).max(t.p[2].y).floor().min(h as f32 - 1.0);
-            if y1 < y0 {
-                continue;
-            }
-            for b in (y0 as usize / BAND_ROWS)..=(y1 as usize / BAND_ROWS) {
-                bins[b].push(i as u32);
+        // Blocks are split into contiguous chunks, each rasterized into its own z-buffer; the
+        // merge keeps the nearest hit and, on exact ties, the earlier chunk -- the same result as
+        // one sequential pass in id order, whatever the number of threads.
+        let chunk_len = ids.len().div_ceil(rayon::current_num_threads().max(1)).max(1);
+        let buffers: Vec<ZBuffer> = ids
+            .par_chunks(chunk_len)
+            .map(|chunk| {
+                let mut zb = ZBuffer::new(w, h);
+                let mut projected = Vec::new();
+                for &id in chunk {
+                    self.raster_block(id, &camera_from_world, camera, near, far, &mut projected, &mut zb);
+                }
+                zb
+            })
+            .collect();
+        let mut buffers = buffers.into_iter();
+        let Some(mut zb) = buffers.next() else { return out };
+        for other in buffers {
+            for i in 0..w * h {
+                if other.inv_z[i] > zb.inv_z[i] {
+                    zb.inv_z[i] = other.inv_z[i];
+                    zb.colour[i] = other.colour[i];
+                    zb.back[i] = other.back[i];
+                }
             }
         }
-        let mut inv_z_buf = vec![0.0f32; w * h];
-        let mut colour_buf = vec![[0.0f32; 3]; w * h];
-        let mut back_buf = vec![false; w * h];
-        inv_z_buf
-            .par_chunks_mut(BAND_ROWS * w)
-            .zip(colour_buf.par_chunks_mut(BAND_ROWS * w))
-            .zip(back_buf.par_chunks_mut(BAND_ROWS * w))
-            .enumerate()
-            .for_each(|(band, ((zb, cb), bb))| {
-                let v0 = band * BAND_ROWS;
-                let rows = zb.len() / w.max(1);
-                for &ti in &bins[band] {
-                    raster_tri(&tris[ti as usize], v0, rows, w, far, zb, cb, bb);
-                }
-            });
         for i in 0..w * h {
-            if inv_z_buf[i] > 0.0 {
-                out.depth_m.data[i] = 1.0 / inv_z_buf[i];
-                out.colour.data[i] = colour_buf[i];
+            if zb.inv_z[i] > 0.0 {
+                out.depth_m.data[i] = 1.0 / zb.inv_z[i];
+                out.colour.data[i] = zb.colour[i];
                 out.covered[i] = true;
-                out.back_facing[i] = back_buf[i];
+                out.back_facing[i] = zb.back[i];
             }
         }
         out
     }
 
-    fn project_block(&self, id: u32, camera_from_world: &Rigid3, camera: &Camera, near: f32) -> Vec<ScreenTri> {
+    /// Rasterizes the mesh of block `id` into `zb`; `projected` is scratch space.
+    fn raster_block(
+        &self,
+        id: u32,
+        camera_from_world: &Rigid3,
+        camera: &Camera,
+        near: f32,
+        far: f32,
+        projected: &mut Vec<(Vec3, Vec2)>,
+        zb: &mut ZBuffer,
+    ) {
         let m = &self.meshes[id as usize];
         let k = camera.intrinsics;
-        let pc: Vec<Vec3> = m.positions.iter().map(|p| camera_from_world.transform_point(*p)).collect();
+        projected.clear();
+        projected.extend(m.positions.iter().map(|p| {
+            let c = camera_from_world.transform_point(*p);
+            let iz = 1.0 / c.z;
+            (c, Vec2::new(k.fx * c.x * iz + k.cx, k.fy * c.y * iz + k.cy))
+        }));
         let (wf, hf) = (k.width as f32, k.height as f32);
-        let mut out = Vec::with_capacity(m.triangles.len());
         for tri in &m.triangles {
-            let c = tri.map(|i| pc[i as usize]);
-            if c[0].z < near || c[1].z < near || c[2].z < near {
+            let [a, b, c] = tri.map(|i| projected[i as usize]);
+            if a.0.z < near || b.0.z < near || c.0.z < near {
                 continue;
             }
-            let inv_z = c.map(|p| 1.0 / p.z);
-            let p: [Vec2; 3] =
-                std::array::from_fn(|i| Vec2::new(k.fx * c[i].x * inv_z[i] + k.cx, k.fy * c[i].y * inv_z[i] + k.cy));
-            let (lo, hi) = (p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]));
-            if hi.x < -0.5 || hi.y < -0.5 || lo.x > wf - 0.5 || lo.y > hf - 0.5 {
+            let (lo, hi) = (a.1.min(b.1).min(c.1), a.1.max(b.1).max(c.1));
+            // Pixel centres inside the bounding box (none for most sub-pixel triangles).
+            let (x0, x1) = (lo.x.ceil().max(0.0), hi.x.floor().min(wf - 1.0));
+            let (y0, y1) = (lo.y.ceil().max(0.0), hi.y.floor().min(hf - 1.0));
+            if x1 < x0 || y1 < y0 {
                 continue;
             }
-            let normal = (c[1] - c[0]).cross(c[2] - c[0]);
-            let col = tri.map(|i| Vec3::from_array(m.colours[i as usize]));
-            out.push(ScreenTri {
-                p,
-                inv_z,
-                col_z: std::array::from_fn(|i| col[i] * inv_z[i]),
-                back: normal.dot(c[0]) > 0.0,
-            });
+            let normal = (b.0 - a.0).cross(c.0 - a.0);
+            let t = ScreenTri {
+                p: [a.1, b.1, c.1],
+                inv_z: [1.0 / a.0.z, 1.0 / b.0.z, 1.0 / c.0.z],
+                col: tri.map(|i| Vec3::from_array(m.colours[i as usize])),
+                back: normal.dot(a.0) > 0.0,
+            };
+            raster_tri(&t, [x0 as usize, x1 as usize, y0 as usize, y1 as usize], far, zb);
         }
-        out
     }
 
     /// Direct TSDF ray-cast at `camera`: each pixel's ray is marched from `depth_min_m` to
@@ -367,59 +374,52 @@ impl std::fmt::Debug for BlockCache<'_> {
     }
 }
 
-/// Rasterizes one triangle into a band of rows `v0 .. v0 + rows`.
+/// A per-chunk z-buffer: `1/z` (0 = empty), colour and facing per pixel.
+struct ZBuffer {
+    width: usize,
+    inv_z: Vec<f32>,
+    colour: Vec<[f32; 3]>,
+    back: Vec<bool>,
+}
+
+impl ZBuffer {
+    fn new(width: usize, height: usize) -> Self {
+        let n = width * height;
+        Self { width, inv_z: vec![0.0; n], colour: vec![[0.0; 3]; n], back: vec![false; n] }
+    }
+}
+
+/// Rasterizes one triangle over the pixel-centre box `[x0, x1, y0, y1]` (inclusive).
 #[inline]
-fn raster_tri(
-    t: &ScreenTri,
-    v0: usize,
-    rows: usize,
-    w: usize,
-    far: f32,
-    zb: &mut [f32],
-    cb: &mut [[f32; 3]],
-    bb: &mut [bool],
-) {
+fn raster_tri(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], far: f32, zb: &mut ZBuffer) {
     let [a, b, c] = t.p;
     let area = (b - a).perp_dot(c - a);
     if area.abs() < 1e-12 || !area.is_finite() {
         return;
     }
     let inv_area = 1.0 / area;
-    let lo = a.min(b).min(c);
-    let hi = a.max(b).max(c);
-    let x0 = lo.x.ceil().max(0.0) as usize;
-    let x1 = hi.x.floor().min(w as f32 - 1.0);
-    if x1 < 0.0 {
-        return;
-    }
-    let x1 = x1 as usize;
-    let y0 = (lo.y.ceil().max(v0 as f32)) as usize;
-    let y1 = hi.y.floor().min((v0 + rows) as f32 - 1.0);
-    if y1 < y0 as f32 || x1 < x0 {
-        return;
-    }
-    let y1 = y1 as usize;
     let min_inv_z = 1.0 / far;
     for y in y0..=y1 {
         let py = y as f32;
         for x in x0..=x1 {
             let p = Vec2::new(x as f32, py);
-            // Barycentrics (normalised by the signed area so both windings work).
+            // Barycentrics (normalised by the signed area so both windings work). A hair of
+            // tolerance so pixels exactly on shared edges are never lost to rounding (a double
+            // hit is harmless under the z-test).
             let l0 = (c - b).perp_dot(p - b) * inv_area;
             let l1 = (a - c).perp_dot(p - c) * inv_area;
             let l2 = (b - a).perp_dot(p - a) * inv_area;
-            // A hair of tolerance so pixels exactly on shared edges are never lost to rounding
-            // (a double hit is harmless under the z-test).
             if l0 < -EDGE_EPS || l1 < -EDGE_EPS || l2 < -EDGE_EPS {
                 continue;
             }
             let iz = l0 * t.inv_z[0] + l1 * t.inv_z[1] + l2 * t.inv_z[2];
-            let i = (y - v0) * w + x;
-            if iz > zb[i] && iz >= min_inv_z {
-                zb[i] = iz;
-                let col = (l0 * t.col_z[0] + l1 * t.col_z[1] + l2 * t.col_z[2]) / iz;
-                cb[i] = col.to_array();
-                bb[i] = t.back;
+            let i = y * zb.width + x;
+            if iz > zb.inv_z[i] && iz >= min_inv_z {
+                zb.inv_z[i] = iz;
+                // Perspective-correct colour: interpolate colour / z, divide by 1 / z.
+                let col = (l0 * t.inv_z[0] * t.col[0] + l1 * t.inv_z[1] * t.col[1] + l2 * t.inv_z[2] * t.col[2]) / iz;
+                zb.colour[i] = col.to_array();
+                zb.back[i] = t.back;
             }
         }
     }

@@ -1,7 +1,7 @@
 //! Inverse warping of colour from source keyframes with a geometry (depth) check.
 
 use rayon::prelude::*;
-use sgam_core::{is_valid_depth, Camera, Image, RgbdFrame, Rigid3, Vec2};
+use sgam_core::{is_valid_depth, Camera, Image, RgbdFrame, Rigid3, Vec2, Vec3};
 
 /// Tolerances and policy of [`warp_colour`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -72,6 +72,7 @@ pub fn warp_colour(
     config: &WarpConfig,
 ) -> Warped {
     let (w, h) = (target_depth_m.width as usize, target_depth_m.height as usize);
+    // Per source: index, source_from_target, camera distance to the target.
     let prepared: Vec<(usize, Rigid3, f32)> = sources
         .iter()
         .enumerate()
@@ -83,7 +84,7 @@ pub fn warp_colour(
         })
         .map(|(i, s)| {
             let dist = s.camera.centre_world().distance(target.centre_world());
-            (i, s.camera.world_from_camera.inverse(), dist)
+            (i, s.camera.world_from_camera.inverse() * target.world_from_camera, dist)
         })
         .collect();
     let mut colour = vec![[0.0f32; 3]; w * h];
@@ -99,17 +100,22 @@ pub fn warp_colour(
             if !target_ok {
                 return;
             }
+            let kt = target.intrinsics;
+            // Target ray (z = 1) of pixel (u, v) = row_ray + u * du; in each source frame the
+            // point at depth z is z * (R_st * ray) + t_st.
+            let row_ray = kt.ray_z1(Vec2::new(0.0, v as f32));
+            let du = Vec3::new(1.0 / kt.fx, 0.0, 0.0);
             for u in 0..w {
                 let z_t = target_depth_m.data[v * w + u];
                 if !is_valid_depth(z_t) {
                     continue;
                 }
-                let p_world = target.unproject_world(Vec2::new(u as f32, v as f32), z_t);
+                let ray = row_ray + du * u as f32;
                 // (key for comparison, source position in `prepared`, sample location)
                 let mut best: Option<((f32, f32, usize), usize, Vec2)> = None;
-                for (j, (i, source_from_world, dist)) in prepared.iter().enumerate() {
+                for (j, (i, source_from_target, dist)) in prepared.iter().enumerate() {
                     let s = &sources[*i];
-                    let pc = source_from_world.transform_point(p_world);
+                    let pc = source_from_target.transform_point(ray * z_t);
                     let Some(uv) = s.camera.intrinsics.project(pc) else { continue };
                     if !s.camera.intrinsics.contains(uv) {
                         continue;
