@@ -117,7 +117,7 @@ pub fn read_clevr_transforms(path: &Path) -> Result<ClevrTransforms, IoError> {
     for (pos, f) in json.frames.iter().enumerate() {
         let what = format!("frames[{pos}] ({})", f.file_path);
         let rows = matrix_rows(path, &f.transform_matrix, &what)?;
-        let world_from_gl = Rigid3::try_from_rows(rows).map_err(|e| IoError::invalid(path, format!("{what}: {e}")))?;
+        let world_from_gl = crate::poses::rigid_from_rows(path, rows, &what)?;
         frames.push(ClevrFrameMeta {
             index: index_from_file_path(&f.file_path).unwrap_or(pos as u32),
             grid_i: f.grid_i,

@@ -221,7 +221,7 @@ pub fn read_nerf_transforms(path: &Path) -> Result<NerfTransforms, IoError> {
         let what = format!("frames[{i}] ({})", f.file_path);
         let own = intrinsics_from_json(path, &f.camera, global.as_ref(), &first_image_size, &what)?;
         let rows = matrix_rows(path, &f.transform_matrix, &what)?;
-        let world_from_gl = Rigid3::try_from_rows(rows).map_err(|e| IoError::invalid(path, format!("{what}: {e}")))?;
+        let world_from_gl = crate::poses::rigid_from_rows(path, rows, &what)?;
         frames.push(NerfFrame {
             file_path: f.file_path.clone(),
             depth_file_path: f.depth_file_path.clone().or_else(|| f.depth_path.clone()),

@@ -20,8 +20,11 @@ fn parse_numbers(path: &Path, text: &str, what: &str) -> Result<Vec<f64>, IoErro
         .collect()
 }
 
-fn rigid_from_rows(path: &Path, rows: [[f64; 4]; 4], what: &str) -> Result<Rigid3, IoError> {
-    Rigid3::try_from_rows(rows).map_err(|e| IoError::invalid(path, format!("{what}: {e}")))
+/// Checks rigidity ([`Rigid3::try_from_rows`]: finite, orthonormal within 1e-3, det +1, last row
+/// `0 0 0 1`) and re-orthonormalises the rotation: real pose files carry ~1e-4 of rounding, and
+/// downstream code may rely on `inverse()` being exact.
+pub(crate) fn rigid_from_rows(path: &Path, rows: [[f64; 4]; 4], what: &str) -> Result<Rigid3, IoError> {
+    Rigid3::try_from_rows(rows).map(|r| r.orthonormalized()).map_err(|e| IoError::invalid(path, format!("{what}: {e}")))
 }
 
 /// Reads a 4x4 camera-to-world pose (`world_from_camera`, OpenCV axes), as 16 whitespace

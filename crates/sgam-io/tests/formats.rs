@@ -1,4 +1,5 @@
 //! Round trips and decoding details of the single-file formats.
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
 mod common;
 

@@ -1,4 +1,5 @@
 //! Each sequence layout on a tiny generated fixture, writer/reader round trips, seeds.
+#![allow(clippy::unwrap_used)] // test helpers outside #[test] fns
 
 mod common;
 
@@ -215,7 +216,14 @@ fn nerf_transforms_round_trip_with_pose_convention() {
     }
     assert_eq!(json["frames"][1]["depth_path"], "depth/00001.npy");
 
-    assert_eq!(read_nerf_transforms(&path).unwrap(), t);
+    let back = read_nerf_transforms(&path).unwrap();
+    assert_eq!(back.intrinsics, t.intrinsics);
+    assert_eq!(back.depth_png_metres_per_unit, t.depth_png_metres_per_unit);
+    assert_eq!(back.frames.len(), 3);
+    for (a, b) in back.frames.iter().zip(&t.frames) {
+        assert_eq!((&a.file_path, &a.depth_file_path, a.intrinsics), (&b.file_path, &b.depth_file_path, b.intrinsics));
+        assert!(pose_diff(&a.world_from_camera, &b.world_from_camera) < 1e-6);
+    }
     assert_eq!(detect_layout(dir.path()).unwrap(), Layout::NerfTransforms);
     for open_path in [dir.path().to_path_buf(), path.clone()] {
         let seq = Sequence::open(&open_path).unwrap();
