@@ -112,7 +112,9 @@ fn seven_scenes_frame_dir(dir: &Path) -> Result<Option<PathBuf>, IoError> {
 }
 
 /// Classifies a `transforms.json`: NeRF style when it has pinhole keys (`fl_x`, `w`,
-/// `camera_model`) or per-frame depth paths, CLEVR-Infinite when it has `camera_angle_x` only.
+/// `camera_model`) or per-frame depth paths; CLEVR-Infinite when it has `camera_angle_x` and
+/// `grid_i` keys or `im_*.png` files beside it; otherwise a `camera_angle_x`-only file is a NeRF
+/// (Blender) dataset.
 fn classify_transforms(path: &Path) -> Result<Layout, IoError> {
     let bytes = std::fs::read(path).map_err(|e| IoError::io(path, e))?;
     let v: serde_json::Value =
@@ -122,10 +124,18 @@ fn classify_transforms(path: &Path) -> Result<Layout, IoError> {
         obj.get("frames").and_then(|f| f.as_array()).ok_or_else(|| IoError::format(path, "no \"frames\" array"))?;
     let nerf_keys = ["fl_x", "w", "camera_model"].iter().any(|k| obj.contains_key(*k));
     let depth_paths = frames.iter().any(|f| f.get("depth_file_path").is_some() || f.get("depth_path").is_some());
+    let grid_keys = frames.iter().any(|f| f.get("grid_i").is_some());
+    let clevr_images = || -> Result<bool, IoError> {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        Ok(list_dir(dir)?.iter().any(|n| n.starts_with("im_") && n.ends_with(".png")))
+    };
     if nerf_keys || depth_paths {
         Ok(Layout::NerfTransforms)
-    } else if obj.contains_key("camera_angle_x") {
+    } else if obj.contains_key("camera_angle_x") && (grid_keys || frames.is_empty() || clevr_images()?) {
         Ok(Layout::ClevrAuthors)
+    } else if obj.contains_key("camera_angle_x") {
+        // A NeRF (Blender) dataset without depth paths: reported as such by the NeRF reader.
+        Ok(Layout::NerfTransforms)
     } else {
         Err(IoError::format(
             path,
@@ -149,7 +159,10 @@ pub fn detect_layout(dir: &Path) -> Result<Layout, IoError> {
         return classify_transforms(&json);
     }
     if !dir.is_dir() {
-        return Err(IoError::io(dir, std::io::Error::new(std::io::ErrorKind::NotFound, "no such folder")));
+        return Err(IoError::io(
+            dir,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "not a folder or transforms.json"),
+        ));
     }
     if seven_scenes_frame_dir(dir)?.is_some() {
         return Ok(Layout::SevenScenes);

@@ -275,6 +275,20 @@ element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n3 0 0
 }
 
 #[test]
+fn nerf_dataset_without_depth_is_named_as_such() {
+    let dir = tempfile::tempdir().unwrap();
+    let json = serde_json::json!({"camera_angle_x": 0.7,
+        "frames": [{"file_path": "./train/r_0", "transform_matrix": Rigid3::IDENTITY.to_rows()}]});
+    let path = dir.path().join("transforms.json");
+    std::fs::write(&path, json.to_string()).unwrap();
+    write_rgb_png(&dir.path().join("train/r_0.png"), &test_frame(8, 6, 0).colour).unwrap();
+    assert_eq!(detect_layout(dir.path()).unwrap(), Layout::NerfTransforms);
+    let e = Sequence::open(dir.path()).unwrap_err();
+    assert_names(&e, &path);
+    assert!(e.to_string().contains("no depth_file_path"), "{e}");
+}
+
+#[test]
 fn errors_expose_their_path() {
     let p = Path::new("/definitely/not/here.png");
     assert_eq!(read_rgb(p).unwrap_err().path(), p);
