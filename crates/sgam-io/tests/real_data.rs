@@ -30,7 +30,9 @@ fn median_valid_depth(f: &RgbdFrame) -> f32 {
 #[test]
 fn seven_scenes_redkitchen() {
     let Some(dir) = data_dir("7scenes-redkitchen-50") else { return };
+    let t = std::time::Instant::now();
     let seq = Sequence::open(&dir).unwrap();
+    eprintln!("7-Scenes: 50 frames indexed in {:.1} ms", t.elapsed().as_secs_f64() * 1e3);
     assert_eq!(seq.layout, Layout::SevenScenes);
     assert_eq!(seq.len(), 50);
     assert_eq!(seq.frame_name(0), "frame-000150");
@@ -81,7 +83,12 @@ fn threedmatch_lounge_in_seq_folder() {
 #[test]
 fn clevr_template() {
     let Some(dir) = data_dir("sgam-clevr-template") else { return };
+    let t = std::time::Instant::now();
     let seed = read_clevr_template(&dir).unwrap();
+    eprintln!(
+        "CLEVR template (2500-pose transforms.json) opened and read in {:.1} ms",
+        t.elapsed().as_secs_f64() * 1e3
+    );
     let k = seed.camera.intrinsics;
     assert_eq!((k.width, k.height), (256, 256));
     let (kk, shape) = read_npy_matrix(&dir.join("K_00000.npy")).unwrap();
