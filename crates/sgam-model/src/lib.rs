@@ -1,1 +1,71 @@
-//! sgam-model (to be written).
+//! The generative sensing model of SGAM: a VQGAN-style encoder -> codebook -> decoder that
+//! completes an incomplete RGB-D guidance image in one shot, its losses, trainers and the
+//! [`VqRefiner`] the generator calls.
+//!
+//! # Concepts
+//! - **Backend**: burn 0.22's dynamic [`Device`](burn::tensor::Device); [`default_device`] is the
+//!   `flex` CPU backend, or `wgpu` with the `wgpu` cargo feature. Training runs the same modules
+//!   after [`Module::train`](burn::module::Module::train) (autodiff).
+//! - **Tensors** are `[B, C, H, W]`. Network input has 5 channels (RGB in `[-1, 1]`, normalised
+//!   disparity `2s - 1`, missing mask), output 4 ([`packing`]).
+//! - **Presets**: [`ModelConfig::paper`] (the authors' architecture, state-dict names equal to
+//!   their Lightning keys) and [`ModelConfig::compact`] (our CPU design). The config travels with
+//!   every checkpoint and weight file.
+//! - **Weights** are safetensors files keyed by parameter path ([`params`]); f16 for shipping.
+//! - **Quantizer** ([`quantize`]): argmin + straight-through, temperature sampling only in missing
+//!   cells, usage statistics, k-means revival of dead codes.
+//! - **Determinism**: weights are initialised from a seed; sampling and training draw from a
+//!   seeded `ChaCha8Rng` passed in.
+
+pub mod blocks;
+pub mod loss;
+pub mod config;
+pub mod convert;
+pub mod model;
+pub mod packing;
+pub mod params;
+pub mod quantize;
+pub mod refiner;
+pub mod train;
+
+pub use burn;
+pub use config::{DepthCoding, ModelConfig};
+pub use model::VqModel;
+pub use quantize::Sampling;
+pub use refiner::{RefinerOptions, VqRefiner};
+pub use train::{train, PairSource, Stage, TrainConfig, TrainPair, TrainProgress, Trainer};
+
+use thiserror::Error;
+
+/// Errors of the model crate; messages name the offending file or value.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum ModelError {
+    /// An unusable model configuration.
+    #[error("invalid model config: {0}")]
+    Config(String),
+    /// Bad input data (sizes, empty batches).
+    #[error("invalid input: {0}")]
+    Input(String),
+    /// A weight file that does not fit the model.
+    #[error("weights: {0}")]
+    Weights(String),
+    /// A file-system error.
+    #[error("i/o: {0}")]
+    Io(String),
+    /// A checkpoint that cannot be read or resumed.
+    #[error("checkpoint: {0}")]
+    Checkpoint(String),
+}
+
+/// The default compute device: burn `flex` (CPU), or the default `wgpu` adapter when built with
+/// the `wgpu` feature.
+pub fn default_device() -> burn::tensor::Device {
+    #[cfg(feature = "wgpu")]
+    {
+        burn::tensor::Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)
+    }
+    #[cfg(not(feature = "wgpu"))]
+    {
+        burn::tensor::Device::flex()
+    }
+}

@@ -1,0 +1,165 @@
+//! Model configuration: architecture hyper-parameters, named presets and the depth coding.
+
+use serde::{Deserialize, Serialize};
+
+use crate::ModelError;
+
+/// How planar depth is coded as one network channel (DESIGN.md §5).
+///
+/// `s = (1/(z + offset) - 1/far) / (1/near - 1/far)`, channel `c = 2 s - 1`. `near_m` and `far_m`
+/// are in the offset space (i.e. compared with `z + offset`), as in the authors' code.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct DepthCoding {
+    /// Nearest depth (after adding `offset_m`), metres; maps to `c = +1`.
+    pub near_m: f32,
+    /// Farthest depth (after adding `offset_m`), metres; maps to `c = -1`.
+    pub far_m: f32,
+    /// Added to planar depth before inverting, metres (Google Earth: 10).
+    pub offset_m: f32,
+}
+
+impl DepthCoding {
+    /// CLEVR-Infinite: near 7 m, far 16 m, no offset.
+    pub fn clevr() -> Self {
+        Self { near_m: 7.0, far_m: 16.0, offset_m: 0.0 }
+    }
+
+    /// Google Earth: depth + 10, near 10.1, far 14.77.
+    pub fn google_earth() -> Self {
+        Self { near_m: 10.1, far_m: 14.77, offset_m: 10.0 }
+    }
+}
+
+/// Architecture of the VQ autoencoder (taming-transformers VQGAN, generalised with a patch stem).
+///
+/// Layout of every tensor inside the model is `[B, C, H, W]`. The encoder maps an `H x W` image to
+/// an `H / (patch_size * 2^(len(ch_mult)-1))` latent grid; the decoder mirrors it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelConfig {
+    /// Preset name, informational (`paper`, `compact`, `custom`).
+    pub name: String,
+    /// Base channel count (`ch`).
+    pub ch: usize,
+    /// Channel multiplier per resolution level (`ch_mult`).
+    pub ch_mult: Vec<usize>,
+    /// Residual blocks per encoder level (the decoder uses one more, as taming does).
+    pub num_res_blocks: usize,
+    /// Feature-map sizes (in pixels, at the reference `resolution`) where attention is used.
+    pub attn_resolutions: Vec<usize>,
+    /// Reference input resolution used to decide where attention goes (256).
+    pub resolution: usize,
+    /// Patch stem: the encoder's `conv_in` is a `patch x patch` conv with stride `patch`, and the
+    /// decoder's `conv_out` predicts `4 * patch^2` channels rearranged by pixel shuffle. `1` means
+    /// the taming 3x3 `conv_in`/`conv_out`.
+    pub patch_size: usize,
+    /// GroupNorm group count (taming: 32). Must divide every channel count.
+    pub norm_groups: usize,
+    /// GroupNorm epsilon (taming: 1e-6).
+    pub norm_eps: f64,
+    /// Whether the mid blocks (at the latent resolution) use self-attention.
+    pub mid_attn: bool,
+    /// Encoder output / decoder input channels.
+    pub z_channels: usize,
+    /// Codebook vector size.
+    pub embed_dim: usize,
+    /// Number of codebook entries.
+    pub n_embed: usize,
+    /// Weight of the commitment term `||z_q - sg(z)||^2`... see [`crate::quantize`]; 0.25.
+    pub beta: f32,
+    /// Depth coding of the disparity channel.
+    pub depth: DepthCoding,
+}
+
+impl ModelConfig {
+    /// The authors' taming VQGAN exactly (~68M parameters at codebook 16384): ch 128,
+    /// ch_mult [1,1,2,2,4], 2 res blocks, attention at 16x16, z 256, embed 256, codebook 16384.
+    pub fn paper() -> Self {
+        Self {
+            name: "paper".into(),
+            ch: 128,
+            ch_mult: vec![1, 1, 2, 2, 4],
+            num_res_blocks: 2,
+            attn_resolutions: vec![16],
+            resolution: 256,
+            patch_size: 1,
+            norm_groups: 32,
+            norm_eps: 1e-6,
+            mid_attn: true,
+            z_channels: 256,
+            embed_dim: 256,
+            n_embed: 16384,
+            beta: 0.25,
+            depth: DepthCoding::clevr(),
+        }
+    }
+
+    /// Our CPU design: a 4x4 stride-4 patch stem (256 -> 64x64), levels at 64/32/16 with
+    /// 32/64/96 channels, one residual block per encoder level, no attention anywhere, a 16x16
+    /// latent of 64-d codes from a 1024-entry codebook, pixel-shuffle output.
+    pub fn compact() -> Self {
+        Self {
+            name: "compact".into(),
+            ch: 32,
+            ch_mult: vec![1, 2, 3],
+            num_res_blocks: 1,
+            attn_resolutions: vec![],
+            resolution: 256,
+            patch_size: 4,
+            norm_groups: 8,
+            norm_eps: 1e-6,
+            mid_attn: false,
+            z_channels: 64,
+            embed_dim: 64,
+            n_embed: 1024,
+            beta: 0.25,
+            depth: DepthCoding::clevr(),
+        }
+    }
+
+    /// A very small model for tests (8/16 channels, 2 levels, 32-entry codebook).
+    pub fn tiny() -> Self {
+        Self {
+            name: "tiny".into(),
+            ch: 8,
+            ch_mult: vec![1, 2],
+            num_res_blocks: 1,
+            attn_resolutions: vec![],
+            resolution: 32,
+            patch_size: 2,
+            norm_groups: 4,
+            norm_eps: 1e-6,
+            mid_attn: true,
+            z_channels: 16,
+            embed_dim: 8,
+            n_embed: 32,
+            beta: 0.25,
+            depth: DepthCoding::clevr(),
+        }
+    }
+
+    /// Total downsampling factor from image to latent grid.
+    pub fn downsample_factor(&self) -> usize {
+        self.patch_size * (1usize << (self.ch_mult.len().saturating_sub(1)))
+    }
+
+    /// Checks the configuration is buildable (non-empty levels, group counts dividing channels).
+    pub fn validate(&self) -> Result<(), ModelError> {
+        let bad = |msg: String| Err(ModelError::Config(format!("{}: {msg}", self.name)));
+        if self.ch_mult.is_empty() || self.ch == 0 || self.patch_size == 0 {
+            return bad("ch, ch_mult and patch_size must be non-zero".into());
+        }
+        if self.n_embed == 0 || self.embed_dim == 0 || self.z_channels == 0 {
+            return bad("codebook and latent sizes must be non-zero".into());
+        }
+        for m in &self.ch_mult {
+            let c = self.ch * m;
+            if self.norm_groups == 0 || c % self.norm_groups != 0 {
+                return bad(format!("norm_groups {} does not divide {c} channels", self.norm_groups));
+            }
+        }
+        if self.depth.near_m <= 0.0 || self.depth.far_m <= self.depth.near_m {
+            return bad(format!("depth near {} / far {} invalid", self.depth.near_m, self.depth.far_m));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,590 @@
+//! Two-stage training (DESIGN.md §5) as library functions the CLI calls.
+//!
+//! - Stage 1: autoencode clean RGB-D (zero mask), optionally without quantization for the first
+//!   `warmup_no_quant_steps`; L1 + gradient-L1 perceptual + quantizer loss, hinge PatchGAN from
+//!   `disc_start` with the adaptive weight; dead codes revived by k-means.
+//! - Stage 2: incomplete -> complete pairs; only the mask fusion `conv_in` and the `encoder` train.
+//!   `quant_conv`, the codebook, `post_quant_conv` and the decoder are frozen (bit-identical).
+//!
+//! Data comes through [`PairSource`], so this crate knows nothing about maps or synthetic worlds.
+//! Checkpoints in the run folder: `model.safetensors` (f32), `disc.safetensors`,
+//! `optim_model.bpk` / `optim_disc.bpk` (burn optimizer records) and `config.json`
+//! ([`CheckpointState`]: model config, train config, step, RNG state, codebook usage, k-means buffer).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Device, Tensor};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use sgam_core::RgbdFrame;
+
+use crate::blocks::pixel_shuffle;
+use crate::config::ModelConfig;
+use crate::loss::{adaptive_weight, generator_loss, gradient_l1, hinge_d_loss, l1, Discriminator, DiscriminatorConfig};
+use crate::model::VqModel;
+use crate::packing::{pack, pack_target, unpack};
+use crate::params::{from_safetensors_bytes, load_named, save_safetensors, write_atomic, WeightPrecision};
+use crate::quantize::{codebook_values, kmeans_revive, quantize, set_codebook, to_host, CodebookUsage, FeatureBuffer, Sampling};
+use crate::ModelError;
+
+/// One training example: network input (with its missing mask) and the complete target.
+/// Stage 1: `input == target`, `missing` all false.
+#[derive(Debug, Clone)]
+pub struct TrainPair {
+    /// Incomplete (stage 2) or clean (stage 1) RGB-D input.
+    pub input: RgbdFrame,
+    /// Row-major, `true` = missing pixel of `input`.
+    pub missing: Vec<bool>,
+    /// Complete RGB-D target, same size.
+    pub target: RgbdFrame,
+}
+
+/// Supplies training batches (random crops of size `crop` x `crop`), drawing randomness from `rng`.
+pub trait PairSource {
+    /// Returns `batch` pairs of `crop x crop` pixels.
+    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> anyhow::Result<Vec<TrainPair>>;
+}
+
+/// Training stage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Stage {
+    /// Autoencoder on clean RGB-D.
+    One,
+    /// Encoder fine-tuning on incomplete -> complete pairs.
+    Two,
+}
+
+/// Training hyper-parameters (serialised into every checkpoint).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Stage.
+    pub stage: Stage,
+    /// Total optimisation steps (a resumed run continues up to this).
+    pub steps: u64,
+    /// Images per step.
+    pub batch: usize,
+    /// Random crop size in pixels (the source crops).
+    pub crop: u32,
+    /// Adam learning rate. The paper uses 4.5e-6 x batch for a 68M model on GPUs; our default
+    /// 2e-4 suits the compact model and short CPU budgets.
+    pub lr: f64,
+    /// Adam beta1 (paper 0.5).
+    pub beta1: f32,
+    /// Adam beta2 (paper 0.9).
+    pub beta2: f32,
+    /// Stage 1: first steps decode the encoder output directly (no quantizer), as the paper.
+    pub warmup_no_quant_steps: u64,
+    /// Step from which the discriminator and the adversarial term are active.
+    pub disc_start: u64,
+    /// Scale of the adaptive adversarial weight (0.8).
+    pub disc_weight: f32,
+    /// Weight of the gradient-L1 perceptual term (1.0).
+    pub perceptual_weight: f32,
+    /// Weight of the quantizer loss (1.0).
+    pub codebook_weight: f32,
+    /// Discriminator architecture.
+    pub disc: DiscriminatorConfig,
+    /// Steps a code may go unused before it counts as dead.
+    pub kmeans_window: u64,
+    /// Revive when more than this fraction of codes is dead (0.1).
+    pub kmeans_dead_fraction: f32,
+    /// Lloyd iterations per revival.
+    pub kmeans_iters: usize,
+    /// Encoder feature rows kept for k-means.
+    pub feature_buffer: usize,
+    /// Checkpoint every this many steps (0 = only at the end).
+    pub ckpt_every: u64,
+    /// Validate every this many steps (0 = never).
+    pub val_every: u64,
+    /// Seed of weights, batches and sampling.
+    pub seed: u64,
+    /// Weights to start from (stage 2: the stage-1 model). Ignored when resuming.
+    pub init_weights: Option<PathBuf>,
+}
+
+impl TrainConfig {
+    /// Defaults for a stage: batch 4, crop 128, lr 2e-4, Adam (0.5, 0.9), disc from step 10k.
+    pub fn new(stage: Stage, steps: u64) -> Self {
+        Self {
+            stage,
+            steps,
+            batch: 4,
+            crop: 128,
+            lr: 2e-4,
+            beta1: 0.5,
+            beta2: 0.9,
+            warmup_no_quant_steps: 0,
+            disc_start: 10_000,
+            disc_weight: 0.8,
+            perceptual_weight: 1.0,
+            codebook_weight: 1.0,
+            disc: DiscriminatorConfig::compact(),
+            kmeans_window: 200,
+            kmeans_dead_fraction: 0.1,
+            kmeans_iters: 5,
+            feature_buffer: 4096,
+            ckpt_every: 500,
+            val_every: 500,
+            seed: 0,
+            init_weights: None,
+        }
+    }
+}
+
+/// Losses and statistics of one step.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepReport {
+    /// Step number after this update (1-based).
+    pub step: u64,
+    /// Generator total loss.
+    pub total: f32,
+    /// L1 over 4 channels.
+    pub l1: f32,
+    /// Gradient-L1 perceptual term.
+    pub perceptual: f32,
+    /// Quantizer loss (0 without quantization).
+    pub quant: f32,
+    /// Generator adversarial loss (0 before `disc_start`).
+    pub g_gan: f32,
+    /// Discriminator hinge loss (0 before `disc_start`).
+    pub d_loss: f32,
+    /// Adaptive adversarial weight used.
+    pub d_weight: f32,
+    /// RGB PSNR of the batch reconstruction, dB (8-bit scale equivalent: peak 1.0).
+    pub psnr: f32,
+    /// Codes used in the last `kmeans_window` steps.
+    pub active_codes: usize,
+    /// Codes revived by k-means in this step.
+    pub revived: usize,
+}
+
+/// One validation example's images (input, model output, target).
+#[derive(Debug, Clone)]
+pub struct ValidationImage {
+    /// Network input.
+    pub input: RgbdFrame,
+    /// Model output.
+    pub output: RgbdFrame,
+    /// Target.
+    pub target: RgbdFrame,
+}
+
+/// What the progress callback receives after each step.
+#[derive(Debug, Clone)]
+pub struct TrainProgress {
+    /// The step's losses.
+    pub report: StepReport,
+    /// Total steps of the run.
+    pub total_steps: u64,
+    /// Training throughput over the run so far, images per second.
+    pub images_per_s: f32,
+    /// Mean validation RGB PSNR (dB) and images, on validation steps.
+    pub validation: Option<(f32, Vec<ValidationImage>)>,
+}
+
+/// Serialised trainer state (`config.json` in the run folder).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CheckpointState {
+    /// Model architecture.
+    pub model_config: ModelConfig,
+    /// Training configuration.
+    pub train_config: TrainConfig,
+    /// Completed steps.
+    pub step: u64,
+    /// ChaCha8 RNG seed, stream and word position.
+    pub rng_seed: [u8; 32],
+    /// RNG stream.
+    pub rng_stream: u64,
+    /// RNG word position.
+    pub rng_word_pos: u128,
+    /// Codebook usage.
+    pub usage: CodebookUsage,
+    /// k-means feature buffer.
+    pub buffer: FeatureBuffer,
+}
+
+/// Errors of training.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// A model error (weights, config, input).
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    /// The pair source failed.
+    #[error("pair source: {0}")]
+    Source(String),
+}
+
+/// A training session: model, discriminator, optimizers, RNG and bookkeeping.
+pub struct Trainer {
+    /// Model architecture.
+    pub model_config: ModelConfig,
+    /// Training configuration.
+    pub train_config: TrainConfig,
+    /// The model (autodiff).
+    pub model: VqModel,
+    /// The discriminator (autodiff).
+    pub disc: Discriminator,
+    optim_model: ModuleOptimizer,
+    optim_disc: ModuleOptimizer,
+    /// Completed steps.
+    pub step: u64,
+    /// The run's RNG (batches).
+    pub rng: ChaCha8Rng,
+    /// Codebook usage statistics.
+    pub usage: CodebookUsage,
+    /// Recent encoder features for k-means.
+    pub buffer: FeatureBuffer,
+    device: Device,
+}
+
+impl std::fmt::Debug for Trainer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Trainer").field("step", &self.step).field("model_config", &self.model_config).finish()
+    }
+}
+
+fn adam(cfg: &TrainConfig) -> ModuleOptimizer {
+    AdamConfig::new().with_beta_1(cfg.beta1).with_beta_2(cfg.beta2).with_epsilon(1e-8).init()
+}
+
+/// Freezes everything but the mask fusion conv and the encoder (stage 2).
+fn freeze_for_stage(model: VqModel, stage: Stage) -> VqModel {
+    match stage {
+        Stage::One => model,
+        Stage::Two => {
+            let mut m = model;
+            m.quant_conv = m.quant_conv.no_grad();
+            m.quantize = m.quantize.no_grad();
+            m.post_quant_conv = m.post_quant_conv.no_grad();
+            m.decoder = m.decoder.no_grad();
+            m
+        }
+    }
+}
+
+fn read_weights(path: &Path) -> Result<std::collections::BTreeMap<String, crate::params::NamedTensor>, ModelError> {
+    let bytes = std::fs::read(path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+    Ok(from_safetensors_bytes(&bytes).map_err(|e| ModelError::Weights(format!("{}: {e}", path.display())))?.0)
+}
+
+fn psnr_rgb(pred: &[f32], target: &[f32], b: usize, hw: usize) -> f32 {
+    let mut se = 0.0f64;
+    let mut n = 0usize;
+    for i in 0..b {
+        for c in 0..3 {
+            let off = (i * 4 + c) * hw;
+            for p in 0..hw {
+                let a = ((pred[off + p] + 1.0) * 0.5).clamp(0.0, 1.0);
+                let t = ((target[off + p] + 1.0) * 0.5).clamp(0.0, 1.0);
+                se += ((a - t) as f64).powi(2);
+                n += 1;
+            }
+        }
+    }
+    let mse = (se / n.max(1) as f64).max(1e-12);
+    (10.0 * (1.0 / mse).log10()) as f32
+}
+
+impl Trainer {
+    /// Starts a fresh session (weights from `seed`, or `train_config.init_weights`).
+    pub fn new(model_config: &ModelConfig, train_config: &TrainConfig) -> Result<Self, ModelError> {
+        let device = crate::default_device();
+        let mut model = VqModel::new(model_config, train_config.seed, &device)?;
+        if let Some(path) = &train_config.init_weights {
+            model = load_named(model, &read_weights(path)?, false, false)?;
+        }
+        let model = freeze_for_stage(model, train_config.stage).train();
+        let disc = Discriminator::new(&train_config.disc, train_config.seed, &device).train();
+        Ok(Self {
+            model_config: model_config.clone(),
+            train_config: train_config.clone(),
+            model,
+            disc,
+            optim_model: adam(train_config),
+            optim_disc: adam(train_config),
+            step: 0,
+            rng: ChaCha8Rng::seed_from_u64(train_config.seed),
+            usage: CodebookUsage::new(model_config.n_embed, 0),
+            buffer: FeatureBuffer::new(model_config.embed_dim, train_config.feature_buffer),
+            device,
+        })
+    }
+
+    /// Writes a checkpoint into `run_dir` (created if needed).
+    pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
+        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::Io(format!("creating {}: {e}", run_dir.display())))?;
+        let meta = crate::refiner::weight_metadata(&self.model_config)?;
+        save_safetensors(&self.model, &run_dir.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
+        save_safetensors(&self.disc, &run_dir.join("disc.safetensors"), WeightPrecision::F32, None)?;
+        for (optim, name) in [(&self.optim_model, "optim_model.bpk"), (&self.optim_disc, "optim_disc.bpk")] {
+            let bytes = optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer {name}: {e}")))?;
+            write_atomic(&run_dir.join(name), &bytes)?;
+        }
+        let state = CheckpointState {
+            model_config: self.model_config.clone(),
+            train_config: self.train_config.clone(),
+            step: self.step,
+            rng_seed: self.rng.get_seed(),
+            rng_stream: self.rng.get_stream(),
+            rng_word_pos: self.rng.get_word_pos(),
+            usage: self.usage.clone(),
+            buffer: self.buffer.clone(),
+        };
+        let json = serde_json::to_vec(&state).map_err(|e| ModelError::Checkpoint(format!("serialising state: {e}")))?;
+        write_atomic(&run_dir.join("config.json"), &json)
+    }
+
+    /// Resumes from the checkpoint in `run_dir`. `steps` overrides the stored total when given.
+    pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
+        let cfg_path = run_dir.join("config.json");
+        let bytes =
+            std::fs::read(&cfg_path).map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", cfg_path.display())))?;
+        let state: CheckpointState = serde_json::from_slice(&bytes)
+            .map_err(|e| ModelError::Checkpoint(format!("parsing {}: {e}", cfg_path.display())))?;
+        let mut train_config = state.train_config.clone();
+        if let Some(s) = steps {
+            train_config.steps = s;
+        }
+        let device = crate::default_device();
+        let model = VqModel::new(&state.model_config, train_config.seed, &device)?;
+        let model = load_named(model, &read_weights(&run_dir.join("model.safetensors"))?, false, false)?;
+        let model = freeze_for_stage(model, train_config.stage).train();
+        let disc = Discriminator::new(&train_config.disc, train_config.seed, &device);
+        let disc = load_named(disc, &read_weights(&run_dir.join("disc.safetensors"))?, false, false)?.train();
+        let mut optims = Vec::new();
+        for name in ["optim_model.bpk", "optim_disc.bpk"] {
+            let path = run_dir.join(name);
+            let optim = adam(&train_config)
+                .load(&path)
+                .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", path.display())))?;
+            optims.push(optim);
+        }
+        let optim_disc = optims.pop().ok_or_else(|| ModelError::Checkpoint("optimizer".into()))?;
+        let optim_model = optims.pop().ok_or_else(|| ModelError::Checkpoint("optimizer".into()))?;
+        let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
+        rng.set_stream(state.rng_stream);
+        rng.set_word_pos(state.rng_word_pos);
+        Ok(Self {
+            model_config: state.model_config,
+            train_config,
+            model,
+            disc,
+            optim_model,
+            optim_disc,
+            step: state.step,
+            rng,
+            usage: state.usage,
+            buffer: state.buffer,
+            device,
+        })
+    }
+
+    /// One optimisation step on a batch from `source`.
+    pub fn step(&mut self, source: &mut dyn PairSource) -> Result<StepReport, TrainError> {
+        let cfg = self.train_config.clone();
+        let batch = source
+            .next_batch(cfg.batch, cfg.crop, &mut self.rng)
+            .map_err(|e| TrainError::Source(format!("{e:#}")))?;
+        self.step_on(&batch)
+    }
+
+    /// One optimisation step on the given pairs.
+    pub fn step_on(&mut self, batch: &[TrainPair]) -> Result<StepReport, TrainError> {
+        let cfg = self.train_config.clone();
+        let dev = self.device.clone().autodiff();
+        let inputs: Vec<&RgbdFrame> = batch.iter().map(|p| &p.input).collect();
+        let masks: Vec<Option<&[bool]>> = batch.iter().map(|p| Some(p.missing.as_slice())).collect();
+        let targets: Vec<&RgbdFrame> = batch.iter().map(|p| &p.target).collect();
+        let coding = self.model_config.depth;
+        let x = pack(&inputs, &masks, &coding, &dev)?;
+        let target = pack_target(&targets, &coding, &dev)?;
+        let step = self.step + 1;
+        let use_quant = cfg.stage == Stage::Two || step > cfg.warmup_no_quant_steps;
+        let use_disc = step > cfg.disc_start;
+
+        // Generator forward.
+        let z = self.model.encode(x);
+        let mut report = StepReport { step, ..Default::default() };
+        let (z_q, quant_loss) = if use_quant {
+            let q = quantize(&self.model, z, Sampling::Argmin, None, self.model_config.beta, &mut self.rng)?;
+            self.usage.record(&q.indices, step);
+            self.buffer.push(&q.features);
+            (q.z_q, Some(q.loss))
+        } else {
+            (z, None)
+        };
+        let features = self.model.decode_features(z_q);
+        let rec = self.model.decoder.forward_head(features.clone());
+        let l1_loss = l1(rec.clone(), target.clone());
+        let perc = gradient_l1(rec.clone(), target.clone());
+        report.l1 = scalar(&l1_loss)?;
+        report.perceptual = scalar(&perc)?;
+        let mut total = l1_loss + perc.mul_scalar(cfg.perceptual_weight);
+        if let Some(ql) = quant_loss {
+            report.quant = scalar(&ql)?;
+            total = total + ql.mul_scalar(cfg.codebook_weight);
+        }
+        if use_disc {
+            let g_loss = generator_loss(self.disc.forward(rec.clone()));
+            let w = self.adaptive_gan_weight(features.detach(), &target, cfg.perceptual_weight, cfg.disc_weight)?;
+            report.g_gan = scalar(&g_loss)?;
+            report.d_weight = w;
+            total = total + g_loss.mul_scalar(w);
+        }
+        report.total = scalar(&total)?;
+        let grads = total.backward();
+        let grads = GradientsParams::from_grads(grads, &self.model);
+        self.model = self.optim_model.step(cfg.lr, self.model.clone(), grads);
+
+        // Discriminator step.
+        if use_disc {
+            let logits_real = self.disc.forward(target.clone().detach());
+            let logits_fake = self.disc.forward(rec.clone().detach());
+            let d_loss = hinge_d_loss(logits_real, logits_fake);
+            report.d_loss = scalar(&d_loss)?;
+            let grads = GradientsParams::from_grads(d_loss.backward(), &self.disc);
+            self.disc = self.optim_disc.step(cfg.lr, self.disc.clone(), grads);
+        }
+
+        // Statistics and codebook maintenance.
+        let dims = rec.dims();
+        let pred = to_host(rec.detach())?;
+        let tgt = to_host(target.detach())?;
+        report.psnr = psnr_rgb(&pred, &tgt, dims[0], dims[2] * dims[3]);
+        if use_quant && cfg.stage == Stage::One {
+            report.revived = self.maybe_revive(step)?;
+        }
+        report.active_codes = self.usage.active_count(step, cfg.kmeans_window);
+        self.step = step;
+        Ok(report)
+    }
+
+    /// Adaptive adversarial weight from gradient norms at the decoder's last conv weight. Computed
+    /// on a fresh graph over the detached last-layer input: the weight gradient of a conv depends
+    /// only on its input and the output gradient, so this equals the full graph's value.
+    fn adaptive_gan_weight(
+        &self,
+        features: Tensor<4>,
+        target: &Tensor<4>,
+        perceptual_weight: f32,
+        scale: f32,
+    ) -> Result<f32, ModelError> {
+        let head = &self.model.decoder.conv_out;
+        let patch = self.model_config.patch_size;
+        let norm_of = |loss_of: &dyn Fn(Tensor<4>) -> Tensor<1>| -> Result<f32, ModelError> {
+            let w = head.weight.val().detach().require_grad();
+            let b = head.bias.as_ref().map(|b| b.val().detach());
+            let out = pixel_shuffle(conv2d(features.clone(), w.clone(), b, ConvOptions::new([1, 1], [1, 1], [1, 1], 1)), patch);
+            let grads = loss_of(out).backward();
+            let g = w.grad(&grads).ok_or_else(|| ModelError::Input("no gradient at decoder.conv_out".into()))?;
+            Ok(scalar(&g.square().sum())?.sqrt())
+        };
+        let rec_norm = norm_of(&|out| l1(out.clone(), target.clone()) + gradient_l1(out, target.clone()).mul_scalar(perceptual_weight))?;
+        let gan_norm = norm_of(&|out| generator_loss(self.disc.forward(out)))?;
+        Ok(adaptive_weight(rec_norm, gan_norm, scale))
+    }
+
+    fn maybe_revive(&mut self, step: u64) -> Result<usize, ModelError> {
+        let cfg = &self.train_config;
+        let dead = self.usage.dead_codes(step, cfg.kmeans_window);
+        let k = self.model_config.n_embed;
+        if (dead.len() as f32) <= cfg.kmeans_dead_fraction * k as f32 || self.buffer.is_empty() {
+            return Ok(0);
+        }
+        let mut codebook = codebook_values(&self.model)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ step);
+        if kmeans_revive(&mut codebook, self.model_config.embed_dim, &dead, &self.buffer, cfg.kmeans_iters, &mut rng) {
+            self.model = set_codebook(self.model.clone(), codebook, k, self.model_config.embed_dim)?;
+            for &d in &dead {
+                self.usage.last_used[d] = step;
+            }
+            return Ok(dead.len());
+        }
+        Ok(0)
+    }
+
+    /// Runs the model (inference mode, argmin) on validation pairs; mean RGB PSNR and images.
+    pub fn validate(&self, val: &[TrainPair]) -> Result<(f32, Vec<ValidationImage>), ModelError> {
+        let model = self.model.valid();
+        let dev = self.device.clone();
+        let mut psnrs = Vec::new();
+        let mut images = Vec::new();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        for pair in val {
+            let x = pack(&[&pair.input], &[Some(pair.missing.as_slice())], &self.model_config.depth, &dev)?;
+            let t = pack_target(&[&pair.target], &self.model_config.depth, &dev)?;
+            let z = model.encode(x);
+            let q = quantize(&model, z, Sampling::Argmin, None, self.model_config.beta, &mut rng)?;
+            let out = model.decode(q.z_q);
+            let dims = out.dims();
+            psnrs.push(psnr_rgb(&to_host(out.clone())?, &to_host(t)?, 1, dims[2] * dims[3]));
+            let output = unpack(out, &self.model_config.depth)?.pop().ok_or_else(|| ModelError::Input("empty".into()))?;
+            images.push(ValidationImage { input: pair.input.clone(), output, target: pair.target.clone() });
+        }
+        let mean = psnrs.iter().sum::<f32>() / psnrs.len().max(1) as f32;
+        Ok((mean, images))
+    }
+}
+
+fn scalar(t: &Tensor<1>) -> Result<f32, ModelError> {
+    Ok(to_host(t.clone().detach())?.first().copied().unwrap_or(f32::NAN))
+}
+
+/// Summary of a finished [`train`] call.
+#[derive(Debug, Clone)]
+pub struct TrainSummary {
+    /// Steps completed in total.
+    pub steps: u64,
+    /// Last step's report.
+    pub last: Option<StepReport>,
+    /// Images per second over this call.
+    pub images_per_s: f32,
+}
+
+/// Trains (or resumes, when `run_dir/config.json` exists) until `train_config.steps`, writing
+/// checkpoints into `run_dir` and calling `progress` after every step.
+pub fn train(
+    run_dir: &Path,
+    model_config: &ModelConfig,
+    train_config: &TrainConfig,
+    source: &mut dyn PairSource,
+    val: &[TrainPair],
+    progress: &mut dyn FnMut(&TrainProgress),
+) -> Result<TrainSummary, TrainError> {
+    let mut trainer = if run_dir.join("config.json").exists() {
+        Trainer::resume(run_dir, Some(train_config.steps))?
+    } else {
+        Trainer::new(model_config, train_config)?
+    };
+    let start = Instant::now();
+    let mut images = 0usize;
+    let mut last = None;
+    while trainer.step < trainer.train_config.steps {
+        let report = trainer.step(source)?;
+        images += trainer.train_config.batch;
+        let tc = &trainer.train_config;
+        let validation = if tc.val_every > 0 && report.step % tc.val_every == 0 && !val.is_empty() {
+            Some(trainer.validate(val)?)
+        } else {
+            None
+        };
+        let images_per_s = images as f32 / start.elapsed().as_secs_f32().max(1e-6);
+        progress(&TrainProgress { report: report.clone(), total_steps: tc.steps, images_per_s, validation });
+        if tc.ckpt_every > 0 && report.step % tc.ckpt_every == 0 {
+            trainer.save(run_dir)?;
+        }
+        last = Some(report);
+    }
+    trainer.save(run_dir)?;
+    Ok(TrainSummary {
+        steps: trainer.step,
+        last,
+        images_per_s: images as f32 / start.elapsed().as_secs_f32().max(1e-6),
+    })
+}
