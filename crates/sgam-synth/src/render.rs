@@ -428,18 +428,23 @@ impl Renderer {
                 let vf = v as f32;
                 let above = o.z > self.top_z;
                 let mut cand = [0u32; MAX_CANDIDATES];
+                let mut n_cand = None;
                 for u in 0..w {
                     let uf = u as f32;
                     let d = base + du * uf + dv * vf;
-                    // Candidates of the whole pixel footprint (rays through the pixel square,
-                    // clipped to the object slab), when the camera is above the slab.
-                    let n_cand = if above {
-                        let corners =
-                            [d - (du + dv) * 0.5, d + (du - dv) * 0.5, d + (dv - du) * 0.5, d + (du + dv) * 0.5];
-                        self.bundle_candidates(o, &corners, &mut cand)
-                    } else {
-                        None
-                    };
+                    // Candidates of the footprint of the next PIXEL_GROUP pixels (all rays
+                    // through those pixel squares, clipped to the object slab), when the camera
+                    // is above the slab.
+                    if u % PIXEL_GROUP == 0 {
+                        n_cand = if above {
+                            let span = du * (PIXEL_GROUP.min(w - u) as f32 - 1.0);
+                            let (lo, hi) = (d - (du + dv) * 0.5, d + span + (du + dv) * 0.5);
+                            let corners = [lo, hi, lo + dv, hi - dv];
+                            self.bundle_candidates(o, &corners, &mut cand)
+                        } else {
+                            None
+                        };
+                    }
                     let closest = |dir: Vec3| match n_cand {
                         Some(n) => {
                             let mut best = (f32::INFINITY, NO_PRIM);
@@ -578,6 +583,8 @@ fn shadow_sweep(sun_dir: Vec3, sun_u: Vec3, sun_v: Vec3, tan_radius: f32, slab_m
 }
 
 const MAX_CANDIDATES: usize = 48;
+/// Pixels of a row that share one candidate list.
+const PIXEL_GROUP: usize = 4;
 const SRGB_LUT_MAX: usize = 4096;
 
 /// `floor` without a libm call (the baseline x86-64 target has no `roundss`).
