@@ -56,3 +56,17 @@ pub fn block_of_voxel(g: IVec3) -> IVec3 {
 pub fn voxel_in_block(g: IVec3) -> IVec3 {
     IVec3::new(g.x.rem_euclid(BLOCK_SIZE), g.y.rem_euclid(BLOCK_SIZE), g.z.rem_euclid(BLOCK_SIZE))
 }
+
+/// `floor(x)` as `i32` without a libm call (the baseline x86-64 target has no `roundss`);
+/// saturates outside the `i32` range, NaN gives 0.
+#[inline(always)]
+pub(crate) fn floor_i32(x: f32) -> i32 {
+    let i = x as i32;
+    i - ((i as f32) > x) as i32
+}
+
+/// Component-wise [`floor_i32`].
+#[inline(always)]
+pub(crate) fn floor_ivec3(v: glam::Vec3) -> IVec3 {
+    IVec3::new(floor_i32(v.x), floor_i32(v.y), floor_i32(v.z))
+}

@@ -267,6 +267,10 @@ impl TsdfMap {
                 .map(|b| b.voxels[local_index((x % 8) as i32, (y % 8) as i32, (z % 8) as i32)])
                 .unwrap_or(Voxel::EMPTY)
         };
+        mesh.positions.reserve(128);
+        mesh.colours.reserve(128);
+        mesh.edge_keys.reserve(128);
+        mesh.triangles.reserve(256);
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;

@@ -4,7 +4,7 @@ use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use sgam_core::{Camera, Image, Rigid3, Vec2};
 
-use crate::block::{block_of_voxel, local_index, voxel_in_block, Block, Voxel};
+use crate::block::{block_of_voxel, floor_i32, floor_ivec3, local_index, voxel_in_block, Block, Voxel};
 use crate::TsdfMap;
 
 /// A rendered view of the map at a pinhole camera.
@@ -200,8 +200,8 @@ impl TsdfMap {
             }
             let (lo, hi) = (a.1.min(b.1).min(c.1), a.1.max(b.1).max(c.1));
             // Pixel centres inside the bounding box (none for most sub-pixel triangles).
-            let (x0, x1) = (lo.x.ceil().max(0.0), hi.x.floor().min(wf - 1.0));
-            let (y0, y1) = (lo.y.ceil().max(0.0), hi.y.floor().min(hf - 1.0));
+            let (x0, x1) = ((-floor_i32(-lo.x)).max(0) as f32, (floor_i32(hi.x) as f32).min(wf - 1.0));
+            let (y0, y1) = ((-floor_i32(-lo.y)).max(0) as f32, (floor_i32(hi.y) as f32).min(hf - 1.0));
             if x1 < x0 || y1 < y0 {
                 continue;
             }
@@ -278,7 +278,7 @@ impl TsdfMap {
         while t <= t_far && guard < 1_000_000 {
             guard += 1;
             let p = origin + dir * t;
-            let bkey = (p / bs).floor().as_ivec3();
+            let bkey = floor_ivec3(p / bs);
             if bkey != last_block {
                 last_block = bkey;
                 if self.index.contains_key(&bkey) {
@@ -326,9 +326,8 @@ impl TsdfMap {
     /// Trilinear TSDF and colour at world point `p`; `None` unless all 8 voxels are observed.
     fn trilinear<'a>(&'a self, p: Vec3, cache: &mut BlockCache<'a>) -> Option<(f32, [f32; 3])> {
         let q = p / self.config.voxel_size_m - Vec3::splat(0.5);
-        let g0 = q.floor();
-        let f = q - g0;
-        let g0 = g0.as_ivec3();
+        let g0 = floor_ivec3(q);
+        let f = q - g0.as_vec3();
         let mut tsdf = 0.0;
         let mut colour = Vec3::ZERO;
         for c in 0..8 {

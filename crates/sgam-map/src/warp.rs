@@ -1,6 +1,8 @@
 //! Inverse warping of colour from source keyframes with a geometry (depth) check.
 
 use rayon::prelude::*;
+
+use crate::block::floor_i32;
 use sgam_core::{is_valid_depth, Camera, Image, RgbdFrame, Rigid3, Vec2, Vec3};
 
 /// Tolerances and policy of [`warp_colour`].
@@ -153,7 +155,7 @@ pub fn warp_colour(
 /// nearest pixel when valid.
 fn sample_depth(depth: &Image<f32>, uv: Vec2) -> Option<f32> {
     let (w, h) = (depth.width as i32, depth.height as i32);
-    let (x0, y0) = (uv.x.floor() as i32, uv.y.floor() as i32);
+    let (x0, y0) = (floor_i32(uv.x), floor_i32(uv.y));
     let (fx, fy) = (uv.x - x0 as f32, uv.y - y0 as f32);
     if x0 >= 0 && y0 >= 0 && x0 + 1 < w && y0 + 1 < h {
         let at = |x: i32, y: i32| depth.data[(y * w + x) as usize];
@@ -164,7 +166,7 @@ fn sample_depth(depth: &Image<f32>, uv: Vec2) -> Option<f32> {
             return Some(top + fy * (bottom - top));
         }
     }
-    let (xn, yn) = ((uv.x + 0.5).floor() as i32, (uv.y + 0.5).floor() as i32);
+    let (xn, yn) = (floor_i32(uv.x + 0.5), floor_i32(uv.y + 0.5));
     if xn < 0 || yn < 0 || xn >= w || yn >= h {
         return None;
     }
@@ -177,7 +179,7 @@ fn sample_colour(colour: &Image<[f32; 3]>, uv: Vec2) -> [f32; 3] {
     let (w, h) = (colour.width as i32, colour.height as i32);
     let x = uv.x.clamp(0.0, (w - 1) as f32);
     let y = uv.y.clamp(0.0, (h - 1) as f32);
-    let (x0, y0) = (x.floor() as i32, y.floor() as i32);
+    let (x0, y0) = (floor_i32(x), floor_i32(y));
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     let (fx, fy) = (x - x0 as f32, y - y0 as f32);
     let at = |x: i32, y: i32| colour.data[(y * w + x) as usize];
