@@ -9,11 +9,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let preset = args.get(1).map(String::as_str).unwrap_or("compact");
     let res: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(256);
     let reps: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(15);
-    let cfg = match preset {
+    let mut cfg = match preset {
         "paper" => ModelConfig::paper(),
         "tiny" => ModelConfig::tiny(),
         _ => ModelConfig::compact(),
     };
+    if let Ok(json) = std::env::var("SGAM_MODEL_CONFIG") {
+        cfg = serde_json::from_str(&json)?;
+    }
     let device = default_device();
     let model = VqModel::new(&cfg, 0, &device)?;
     println!("{preset}: {} parameters", model.num_params_total());

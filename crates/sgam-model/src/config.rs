@@ -64,7 +64,8 @@ pub struct ModelConfig {
     pub embed_dim: usize,
     /// Number of codebook entries.
     pub n_embed: usize,
-    /// Weight of the commitment term `||z_q - sg(z)||^2`... see [`crate::quantize`]; 0.25.
+    /// Weight of the codebook term `||z_q - sg(z)||^2` (the commitment term has weight 1; the
+    /// authors' effective weighting, see [`crate::quantize`]); 0.25.
     pub beta: f32,
     /// Depth coding of the disparity channel.
     pub depth: DepthCoding,
@@ -153,7 +154,7 @@ impl ModelConfig {
         }
         for m in &self.ch_mult {
             let c = self.ch * m;
-            if self.norm_groups == 0 || c % self.norm_groups != 0 {
+            if self.norm_groups == 0 || !c.is_multiple_of(self.norm_groups) {
                 return bad(format!("norm_groups {} does not divide {c} channels", self.norm_groups));
             }
         }

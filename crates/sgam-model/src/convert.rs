@@ -41,7 +41,11 @@ pub fn read_lightning_state_dict(ckpt: &Path) -> Result<BTreeMap<String, NamedTe
 /// Converts an authors' checkpoint into a safetensors file of the `paper` preset (f32, config
 /// embedded). `config` overrides the preset (e.g. a 4096-entry Google Earth codebook); when
 /// `None`, the paper preset is used with the codebook size read from the checkpoint.
-pub fn convert_lightning_checkpoint(ckpt: &Path, out: &Path, config: Option<&ModelConfig>) -> Result<ModelConfig, ModelError> {
+pub fn convert_lightning_checkpoint(
+    ckpt: &Path,
+    out: &Path,
+    config: Option<&ModelConfig>,
+) -> Result<ModelConfig, ModelError> {
     let mut tensors = read_lightning_state_dict(ckpt)?;
     tensors.retain(|k, _| !k.starts_with("loss."));
     let config = match config {

@@ -18,9 +18,9 @@
 //!   seeded `ChaCha8Rng` passed in.
 
 pub mod blocks;
-pub mod loss;
 pub mod config;
 pub mod convert;
+pub mod loss;
 pub mod model;
 pub mod packing;
 pub mod params;

@@ -212,9 +212,7 @@ pub fn to_safetensors_bytes(
         .map(|(name, t)| {
             let bytes: Vec<u8> = match precision {
                 WeightPrecision::F32 => t.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                WeightPrecision::F16 => {
-                    t.values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect()
-                }
+                WeightPrecision::F16 => t.values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect(),
             };
             (name.clone(), t.shape.clone(), bytes)
         })
@@ -232,10 +230,13 @@ pub fn to_safetensors_bytes(
     safetensors::serialize(views, metadata).map_err(|e| ModelError::Weights(format!("serialising safetensors: {e}")))
 }
 
+/// Named tensors by path (sorted).
+pub type TensorMap = BTreeMap<String, NamedTensor>;
+
 /// Parses safetensors bytes (F32, F16 or BF16 tensors) into named f32 tensors plus metadata.
 pub fn from_safetensors_bytes(
     bytes: &[u8],
-) -> Result<(BTreeMap<String, NamedTensor>, BTreeMap<String, String>), ModelError> {
+) -> Result<(TensorMap, BTreeMap<String, String>), ModelError> {
     use safetensors::tensor::Dtype;
     let st = safetensors::SafeTensors::deserialize(bytes)
         .map_err(|e| ModelError::Weights(format!("parsing safetensors: {e}")))?;

@@ -73,13 +73,16 @@ pub fn select_codes(
     let mut out = Vec::with_capacity(n);
     for i in 0..n {
         let row = &dist[i * k..(i + 1) * k];
-        let argmin = row.iter().enumerate().fold((0usize, f32::INFINITY), |best, (j, &d)| {
-            if d < best.1 {
-                (j, d)
-            } else {
-                best
-            }
-        });
+        let argmin = row.iter().enumerate().fold(
+            (0usize, f32::INFINITY),
+            |best, (j, &d)| {
+                if d < best.1 {
+                    (j, d)
+                } else {
+                    best
+                }
+            },
+        );
         let sample = missing.is_some_and(|m| m.get(i).copied().unwrap_or(false));
         let choice = match sampling {
             Sampling::Temperature { temperature, top_k } if sample && temperature > 0.0 && top_k > 1 => {

@@ -29,16 +29,27 @@ pub fn weight_metadata(config: &ModelConfig) -> Result<HashMap<String, String>, 
 }
 
 /// Saves a model with its config embedded (f16 halves the size; used for the shipped model).
-pub fn save_model(model: &VqModel, config: &ModelConfig, path: &Path, precision: WeightPrecision) -> Result<(), ModelError> {
+pub fn save_model(
+    model: &VqModel,
+    config: &ModelConfig,
+    path: &Path,
+    precision: WeightPrecision,
+) -> Result<(), ModelError> {
     save_safetensors(model, path, precision, Some(weight_metadata(config)?))
 }
 
 /// Loads a model from safetensors bytes; the config comes from `config_json` when given, else
 /// from the file's metadata.
-pub fn load_model_bytes(weights: &[u8], config_json: Option<&[u8]>, device: &Device) -> Result<(VqModel, ModelConfig), ModelError> {
+pub fn load_model_bytes(
+    weights: &[u8],
+    config_json: Option<&[u8]>,
+    device: &Device,
+) -> Result<(VqModel, ModelConfig), ModelError> {
     let (tensors, meta) = from_safetensors_bytes(weights)?;
     let config: ModelConfig = match config_json {
-        Some(json) => serde_json::from_slice(json).map_err(|e| ModelError::Config(format!("parsing config JSON: {e}")))?,
+        Some(json) => {
+            serde_json::from_slice(json).map_err(|e| ModelError::Config(format!("parsing config JSON: {e}")))?
+        }
         None => {
             let json = meta.get(CONFIG_METADATA_KEY).ok_or_else(|| {
                 ModelError::Config(format!("weights carry no '{CONFIG_METADATA_KEY}' metadata and no config was given"))
@@ -51,7 +62,11 @@ pub fn load_model_bytes(weights: &[u8], config_json: Option<&[u8]>, device: &Dev
 }
 
 /// Loads a model from a safetensors file and an optional config JSON file.
-pub fn load_model(weights: &Path, config: Option<&Path>, device: &Device) -> Result<(VqModel, ModelConfig), ModelError> {
+pub fn load_model(
+    weights: &Path,
+    config: Option<&Path>,
+    device: &Device,
+) -> Result<(VqModel, ModelConfig), ModelError> {
     let bytes = std::fs::read(weights).map_err(|e| ModelError::Io(format!("reading {}: {e}", weights.display())))?;
     let cfg = match config {
         Some(p) => Some(std::fs::read(p).map_err(|e| ModelError::Io(format!("reading {}: {e}", p.display())))?),

@@ -30,7 +30,9 @@ use crate::loss::{adaptive_weight, generator_loss, gradient_l1, hinge_d_loss, l1
 use crate::model::VqModel;
 use crate::packing::{pack, pack_target, unpack};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, write_atomic, WeightPrecision};
-use crate::quantize::{codebook_values, kmeans_revive, quantize, set_codebook, to_host, CodebookUsage, FeatureBuffer, Sampling};
+use crate::quantize::{
+    codebook_values, kmeans_revive, quantize, set_codebook, to_host, CodebookUsage, FeatureBuffer, Sampling,
+};
 use crate::ModelError;
 
 /// One training example: network input (with its missing mask) and the complete target.
@@ -343,8 +345,8 @@ impl Trainer {
     /// Resumes from the checkpoint in `run_dir`. `steps` overrides the stored total when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
         let cfg_path = run_dir.join("config.json");
-        let bytes =
-            std::fs::read(&cfg_path).map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", cfg_path.display())))?;
+        let bytes = std::fs::read(&cfg_path)
+            .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", cfg_path.display())))?;
         let state: CheckpointState = serde_json::from_slice(&bytes)
             .map_err(|e| ModelError::Checkpoint(format!("parsing {}: {e}", cfg_path.display())))?;
         let mut train_config = state.train_config.clone();
@@ -388,9 +390,8 @@ impl Trainer {
     /// One optimisation step on a batch from `source`.
     pub fn step(&mut self, source: &mut dyn PairSource) -> Result<StepReport, TrainError> {
         let cfg = self.train_config.clone();
-        let batch = source
-            .next_batch(cfg.batch, cfg.crop, &mut self.rng)
-            .map_err(|e| TrainError::Source(format!("{e:#}")))?;
+        let batch =
+            source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(format!("{e:#}")))?;
         self.step_on(&batch)
     }
 
@@ -480,12 +481,17 @@ impl Trainer {
         let norm_of = |loss_of: &dyn Fn(Tensor<4>) -> Tensor<1>| -> Result<f32, ModelError> {
             let w = head.weight.val().detach().require_grad();
             let b = head.bias.as_ref().map(|b| b.val().detach());
-            let out = pixel_shuffle(conv2d(features.clone(), w.clone(), b, ConvOptions::new([1, 1], [1, 1], [1, 1], 1)), patch);
+            let out = pixel_shuffle(
+                conv2d(features.clone(), w.clone(), b, ConvOptions::new([1, 1], [1, 1], [1, 1], 1)),
+                patch,
+            );
             let grads = loss_of(out).backward();
             let g = w.grad(&grads).ok_or_else(|| ModelError::Input("no gradient at decoder.conv_out".into()))?;
             Ok(scalar(&g.square().sum())?.sqrt())
         };
-        let rec_norm = norm_of(&|out| l1(out.clone(), target.clone()) + gradient_l1(out, target.clone()).mul_scalar(perceptual_weight))?;
+        let rec_norm = norm_of(&|out| {
+            l1(out.clone(), target.clone()) + gradient_l1(out, target.clone()).mul_scalar(perceptual_weight)
+        })?;
         let gan_norm = norm_of(&|out| generator_loss(self.disc.forward(out)))?;
         Ok(adaptive_weight(rec_norm, gan_norm, scale))
     }
@@ -524,7 +530,8 @@ impl Trainer {
             let out = model.decode(q.z_q);
             let dims = out.dims();
             psnrs.push(psnr_rgb(&to_host(out.clone())?, &to_host(t)?, 1, dims[2] * dims[3]));
-            let output = unpack(out, &self.model_config.depth)?.pop().ok_or_else(|| ModelError::Input("empty".into()))?;
+            let output =
+                unpack(out, &self.model_config.depth)?.pop().ok_or_else(|| ModelError::Input("empty".into()))?;
             images.push(ValidationImage { input: pair.input.clone(), output, target: pair.target.clone() });
         }
         let mean = psnrs.iter().sum::<f32>() / psnrs.len().max(1) as f32;

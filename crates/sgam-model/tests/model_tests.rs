@@ -24,8 +24,14 @@ fn synthetic_frame(w: u32, h: u32, seed: u64) -> RgbdFrame {
             [(a + u) * 0.5, (b + v) * 0.5, ((c + u * v) * 0.7).min(1.0)]
         })
         .collect();
-    let depth = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).map(|(x, y)| 8.0 + 6.0 * (x + y) as f32 / (w + h) as f32).collect();
-    RgbdFrame { colour: Image { width: w, height: h, data: colour }, depth_m: Image { width: w, height: h, data: depth } }
+    let depth = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| 8.0 + 6.0 * (x + y) as f32 / (w + h) as f32)
+        .collect();
+    RgbdFrame {
+        colour: Image { width: w, height: h, data: colour },
+        depth_m: Image { width: w, height: h, data: depth },
+    }
 }
 
 struct FixedSource {
@@ -166,7 +172,8 @@ fn temperature_to_zero_equals_argmin() {
     let dist: Vec<f32> = (0..n * k).map(|_| rng.random_range(0.0..10.0)).collect();
     let missing = vec![true; n];
     let argmin = select_codes(&dist, n, k, Some(&missing), Sampling::Argmin, &mut rng);
-    let cold = select_codes(&dist, n, k, Some(&missing), Sampling::Temperature { temperature: 1e-6, top_k: 8 }, &mut rng);
+    let cold =
+        select_codes(&dist, n, k, Some(&missing), Sampling::Temperature { temperature: 1e-6, top_k: 8 }, &mut rng);
     assert_eq!(argmin, cold);
     // A hot temperature samples other codes, but only in missing cells.
     let half: Vec<bool> = (0..n).map(|i| i % 2 == 0).collect();
@@ -301,10 +308,22 @@ fn refiner_from_bytes_completes_frames() {
     assert!(out.depth_m.data.iter().all(|d| (7.0 - 1e-3..=16.0 + 1e-3).contains(d)));
     // Temperature sampling with T -> 0 gives the argmin output; a seed reproduces.
     let argmin = refiner.complete(&f, &missing).unwrap();
-    refiner.set_options(RefinerOptions { sampling: Sampling::Temperature { temperature: 1e-7, top_k: 4 }, seed: 3, ..Default::default() });
+    refiner.set_options(RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 1e-7, top_k: 4 },
+        seed: 3,
+        ..Default::default()
+    });
     assert_eq!(refiner.complete(&f, &missing).unwrap(), argmin);
-    refiner.set_options(RefinerOptions { sampling: Sampling::Temperature { temperature: 10.0, top_k: 4 }, seed: 3, ..Default::default() });
+    refiner.set_options(RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 10.0, top_k: 4 },
+        seed: 3,
+        ..Default::default()
+    });
     let s1 = refiner.complete(&f, &missing).unwrap();
-    refiner.set_options(RefinerOptions { sampling: Sampling::Temperature { temperature: 10.0, top_k: 4 }, seed: 3, ..Default::default() });
+    refiner.set_options(RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 10.0, top_k: 4 },
+        seed: 3,
+        ..Default::default()
+    });
     assert_eq!(refiner.complete(&f, &missing).unwrap(), s1);
 }
