@@ -219,7 +219,9 @@ fn bench_7scenes(dir: &Path) {
 
 fn main() {
     let arg = std::env::args().skip(1).find(|a| !a.starts_with('-'));
-    bench_clevr();
+    if std::env::var_os("SGAM_BENCH_SKIP_CLEVR").is_none() {
+        bench_clevr();
+    }
     let dir = arg
         .map(PathBuf::from)
         .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/7scenes-redkitchen-50"));

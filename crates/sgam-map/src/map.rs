@@ -225,13 +225,19 @@ fn disjoint_mut<'a>(blocks: &'a mut [Block], ids: &[u32]) -> Vec<&'a mut Block> 
 
 /// The block keys crossed by every usable pixel's truncation band, sorted, plus the number of
 /// usable pixels.
+///
+/// Pixels are handled in `s x s` tiles. In a tile whose usable depths span at most the
+/// truncation distance, every pixel's band segment lies inside the "tube" bounded by the four
+/// corner pixels' rays between planar depths `min - trunc` and `max + trunc`; while the tube's
+/// cross-section is at most half a block (`s` is chosen so), any block meeting the tube also
+/// meets one of its four edges, so walking the four edges finds every block the tile's pixels
+/// would (a slight superset). Other tiles (depth edges) walk every pixel's own segment.
 fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let (w, h) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
     let trunc = cfg.trunc_m();
     let inv_block = 1.0 / cfg.block_size_m();
     let k = camera.intrinsics;
     let wfc: Rigid3 = camera.world_from_camera;
-    let rows_per_task = 8usize;
     let depth = &frame.depth_m.data;
     if depth.len() < w * h {
         return (Vec::new(), 0);
@@ -240,38 +246,69 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
     let r = wfc.rotation;
     let (inv_fx, inv_fy) = (1.0 / k.fx, 1.0 / k.fy);
     let (d_lo, d_hi) = (cfg.depth_min_m, cfg.depth_max_m);
-    let (set, used) = (0..h.div_ceil(rows_per_task))
+    // Largest tile whose corner rays stay within half a block of each other at the far end.
+    let spread_m = |s: usize| (s - 1) as f32 * (d_hi + trunc) / k.fx.min(k.fy);
+    let tile = [8usize, 4, 2].into_iter().find(|&s| spread_m(s) <= 0.5 * cfg.block_size_m()).unwrap_or(1);
+    // World ray (camera z = 1, block units) of pixel (u, v).
+    let ray =
+        |u: f32, v: f32| (r.x_axis * ((u - k.cx) * inv_fx) + r.y_axis * ((v - k.cy) * inv_fy) + r.z_axis) * inv_block;
+    let usable = |d: f32| is_valid_depth(d) && d >= d_lo && d <= d_hi;
+    let (set, used) = (0..h.div_ceil(tile))
         .into_par_iter()
         .fold(
             || (FxHashSet::<IVec3>::default(), 0usize),
-            |(mut set, mut used), task| {
+            |(mut set, mut used), tile_row| {
                 // Direct-mapped cache of recently inserted cells: neighbouring pixels cross the
                 // same blocks, so most cells are rejected with one comparison.
                 let mut recent = [IVec3::MAX; 64];
-                for v in task * rows_per_task..((task + 1) * rows_per_task).min(h) {
-                    // World ray (camera z = 1) of pixel (u, v) = row_dir + u * du, in block units.
-                    let y = (v as f32 - k.cy) * inv_fy;
-                    let row_dir = (r.y_axis * y + r.z_axis - r.x_axis * (k.cx * inv_fx)) * inv_block;
-                    let du = r.x_axis * (inv_fx * inv_block);
-                    let row = &depth[v * w..(v + 1) * w];
-                    for (u, &d) in row.iter().enumerate() {
-                        if !(is_valid_depth(d) && d >= d_lo && d <= d_hi) {
-                            continue;
-                        }
-                        used += 1;
-                        let dir = row_dir + du * u as f32;
-                        let a = origin + dir * (d - trunc).max(0.0);
-                        let b = origin + dir * (d + trunc);
-                        walk_cells(a, b, |cell| {
-                            let slot = (cell.x.wrapping_mul(73_856_093)
-                                ^ cell.y.wrapping_mul(19_349_663)
-                                ^ cell.z.wrapping_mul(83_492_791)) as usize
-                                & 63;
-                            if recent[slot] != cell {
-                                recent[slot] = cell;
-                                set.insert(cell);
+                let mut insert = |cell: IVec3| {
+                    let slot = (cell.x.wrapping_mul(73_856_093)
+                        ^ cell.y.wrapping_mul(19_349_663)
+                        ^ cell.z.wrapping_mul(83_492_791)) as usize
+                        & 63;
+                    if recent[slot] != cell {
+                        recent[slot] = cell;
+                        set.insert(cell);
+                    }
+                };
+                let (v0, v1) = (tile_row * tile, ((tile_row + 1) * tile).min(h));
+                for u0 in (0..w).step_by(tile) {
+                    let u1 = (u0 + tile).min(w);
+                    let (mut d_min, mut d_max, mut n) = (f32::INFINITY, 0.0f32, 0usize);
+                    for v in v0..v1 {
+                        for &d in &depth[v * w + u0..v * w + u1] {
+                            if usable(d) {
+                                d_min = d_min.min(d);
+                                d_max = d_max.max(d);
+                                n += 1;
                             }
-                        });
+                        }
+                    }
+                    if n == 0 {
+                        continue;
+                    }
+                    used += n;
+                    if tile > 1 && d_max - d_min <= trunc {
+                        let (z0, z1) = ((d_min - trunc).max(0.0), d_max + trunc);
+                        let (ua, ub, va, vb) = (u0 as f32, (u1 - 1) as f32, v0 as f32, (v1 - 1) as f32);
+                        for (u, v) in [(ua, va), (ub, va), (ua, vb), (ub, vb)] {
+                            let dir = ray(u, v);
+                            walk_cells(origin + dir * z0, origin + dir * z1, &mut insert);
+                        }
+                    } else {
+                        for v in v0..v1 {
+                            for u in u0..u1 {
+                                let d = depth[v * w + u];
+                                if usable(d) {
+                                    let dir = ray(u as f32, v as f32);
+                                    walk_cells(
+                                        origin + dir * (d - trunc).max(0.0),
+                                        origin + dir * (d + trunc),
+                                        &mut insert,
+                                    );
+                                }
+                            }
+                        }
                     }
                 }
                 (set, used)
