@@ -191,7 +191,10 @@ fn crop_frame(frame: &RgbdFrame, w: usize, h: usize) -> RgbdFrame {
 impl Refiner for VqRefiner {
     type Error = ModelError;
 
+    /// Sampling draws are seeded per frame from `options.seed ^ guidance.seed`, so a frame's
+    /// result does not depend on what was refined before it (resumed runs equal uninterrupted ones).
     fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, ModelError> {
+        self.rng = ChaCha8Rng::seed_from_u64(self.options.seed ^ guidance.seed);
         self.complete(&guidance.frame, &guidance.missing)
     }
 }

@@ -26,6 +26,11 @@ pub enum Subject {
     MapStep,
     /// Ray tracing one synthetic frame (4 spp, soft shadows).
     Synth,
+    /// One forward pass of the compact VQ model (bundled weights, or untrained ones: same cost).
+    Refine,
+    /// One full generation step (sources + render + warp + refine + integrate + re-mesh +
+    /// write) with the compact model; prints the per-stage split.
+    Step,
 }
 
 /// Arguments of `sgam bench`.
@@ -80,10 +85,109 @@ fn stats(ms: &mut [f64]) -> (f64, f64, f64) {
     (median, ms.iter().sum::<f64>() / n as f64, ms[0])
 }
 
+/// The compact model for timing: the bundled weights when present, else freshly initialised
+/// ones (the forward pass costs the same).
+fn compact_refiner() -> Result<sgam_model::VqRefiner> {
+    let bundled = std::path::Path::new(crate::generate::BUNDLED_MODEL);
+    if bundled.exists() {
+        return Ok(sgam_model::VqRefiner::from_files(bundled, None, Default::default())?);
+    }
+    let device = sgam_model::default_device();
+    let config = sgam_model::ModelConfig::compact();
+    let model = sgam_model::VqModel::new(&config, 0, &device)?;
+    Ok(sgam_model::VqRefiner::new(model, config, Default::default(), device))
+}
+
+fn print_line(args: &BenchArgs, subject: &str, ms: &mut [f64], extra: serde_json::Value) {
+    let (median, mean, min) = stats(ms);
+    let line = json!({
+        "subject": subject, "res": args.res, "iterations": args.iterations,
+        "median_ms": median, "mean_ms": mean, "min_ms": min, "threads": rayon::current_num_threads(),
+        "extra": extra,
+    });
+    if !args.json {
+        eprintln!(
+            "{subject} at {}x{}: median {median:.3} ms (mean {mean:.3}, min {min:.3}) over {} runs",
+            args.res, args.res, args.iterations
+        );
+    }
+    println!("{line}");
+}
+
+fn bench_refine(args: &BenchArgs) -> Result<()> {
+    let mut refiner = compact_refiner()?;
+    let (_, seq) = synthetic_sequence(args.res, 1);
+    let (cam, frame) = &seq[0];
+    let n = frame.depth_m.len();
+    let missing: Vec<bool> = (0..n).map(|i| (i % args.res as usize) > args.res as usize * 3 / 4).collect();
+    let g = sgam_core::Guidance { camera: *cam, frame: frame.clone(), missing, seed: 0 };
+    sgam_core::Refiner::refine(&mut refiner, &g)?; // warm-up
+    let mut ms = Vec::new();
+    for _ in 0..args.iterations {
+        let t = Instant::now();
+        std::hint::black_box(sgam_core::Refiner::refine(&mut refiner, &g)?);
+        ms.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let params = refiner.config().clone();
+    print_line(
+        args,
+        "refine",
+        &mut ms,
+        json!({"preset": "compact", "embed_dim": params.embed_dim, "n_embed": params.n_embed}),
+    );
+    Ok(())
+}
+
+fn bench_step(args: &BenchArgs) -> Result<()> {
+    use crate::generator::{GeneratorConfig, WorldGenerator};
+    let refiner = compact_refiner()?;
+    let (_, seq) = synthetic_sequence(args.res, 1);
+    let dir = tempfile::tempdir()?;
+    let config = GeneratorConfig {
+        tsdf: TsdfConfig::default(),
+        warp: WarpConfig { selection: sgam_map::SourceSelection::NearestCamera, ..WarpConfig::default() },
+        k_sources: 5,
+        source_radius_m: 1.0,
+        weight_threshold: 1.0,
+        no_map: false,
+        seed: 0,
+    };
+    let keyframes = crate::keyframes::Keyframes::new(dir.path(), 1.0, 96);
+    let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
+    let (seed_cam, seed_frame) = &seq[0];
+    gen.seed(seed_cam, seed_frame.clone())?;
+    let side = ((args.iterations + 4) as f32).sqrt().ceil() as usize + 1;
+    let cells = trajectory::zigzag_cells(side, side);
+    let poses = trajectory::grid_poses(&seed_cam.world_from_camera, &cells, 0.408);
+    let warm = 3;
+    let mut all = Vec::new();
+    for p in poses.iter().skip(1).take(warm + args.iterations) {
+        all.push(gen.step(&Camera::new(seed_cam.intrinsics, *p))?);
+    }
+    let timed = &all[warm..];
+    let med = |f: fn(&crate::generator::StepTimings) -> f64| {
+        let mut v: Vec<f64> = timed.iter().map(f).collect();
+        stats(&mut v).0
+    };
+    let mut ms: Vec<f64> = timed.iter().map(|t| t.total_ms).collect();
+    let split = json!({
+        "sources_ms": med(|t| t.sources_ms), "render_ms": med(|t| t.render_ms), "warp_ms": med(|t| t.warp_ms),
+        "refine_ms": med(|t| t.refine_ms), "integrate_ms": med(|t| t.integrate_ms), "mesh_ms": med(|t| t.mesh_ms),
+        "write_ms": med(|t| t.write_ms), "blocks": gen.map.block_count(),
+    });
+    print_line(args, "step", &mut ms, split);
+    Ok(())
+}
+
 /// Runs `sgam bench`.
 pub fn run(args: BenchArgs) -> Result<()> {
     if args.iterations == 0 || args.res < 16 {
         bail!("need --iterations >= 1 and --res >= 16");
+    }
+    match args.subject {
+        Subject::Refine => return bench_refine(&args),
+        Subject::Step => return bench_step(&args),
+        _ => {}
     }
     let warm = 6usize;
     let (renderer, seq) = synthetic_sequence(args.res, warm + args.iterations + 1);
@@ -138,6 +242,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
             Subject::Synth => {
                 std::hint::black_box(renderer.render(cam, &RenderConfig::default()));
             }
+            Subject::Refine | Subject::Step => {} // timed by bench_refine / bench_step above
         }
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         if matches!(args.subject, Subject::Render | Subject::RayCast | Subject::Synth) {

@@ -44,6 +44,8 @@ pub enum TrajectoryKind {
 pub enum RefinerKind {
     /// The bundled model when present, else the null stand-in (said on start-up).
     Auto,
+    /// The VQ model from --model (safetensors with its config embedded).
+    Model,
     /// Stand-in: holes filled by push-pull interpolation.
     Null,
     /// Stand-in: ground truth of the synthetic world (synthetic seeds only).
@@ -107,6 +109,15 @@ pub struct GenerateArgs {
     /// Refiner.
     #[arg(long, value_enum, default_value_t = RefinerKind::Auto)]
     pub refiner: RefinerKind,
+    /// Model weights for --refiner model (default: the bundled compact model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Sampling temperature in missing latent cells (0 = argmin everywhere).
+    #[arg(long, default_value_t = 0.0)]
+    pub temperature: f32,
+    /// Codes considered when sampling (top-k nearest).
+    #[arg(long, default_value_t = 8)]
+    pub top_k: usize,
     /// Ablation: no global map; the guidance is warped from the previous frame only.
     #[arg(long)]
     pub no_map: bool,
@@ -380,12 +391,10 @@ pub fn run(args: GenerateArgs) -> Result<()> {
     let seed = load_seed(&args)?;
     let refiner = if args.no_refine { RefinerKind::Null } else { args.refiner };
     match refiner {
-        RefinerKind::Auto | RefinerKind::Null => {
-            if refiner == RefinerKind::Auto {
-                eprintln!("note: no trained model is bundled yet; using the null stand-in (push-pull hole filling)");
-            }
-            run_with(&args, &dir, resumed, seed, NullRefiner { fill: !args.no_refine })
-        }
+        RefinerKind::Auto | RefinerKind::Null | RefinerKind::Model => match model_refiner(refiner, &args)? {
+            Some(model) => run_with(&args, &dir, resumed, seed, model),
+            None => run_with(&args, &dir, resumed, seed, NullRefiner { fill: !args.no_refine }),
+        },
         RefinerKind::Oracle => {
             let Some(renderer) = seed.renderer.clone() else {
                 bail!(
@@ -395,6 +404,35 @@ pub fn run(args: GenerateArgs) -> Result<()> {
             run_with(&args, &dir, resumed, seed, OracleRefiner::new(renderer, RenderConfig::default()))
         }
     }
+}
+
+/// Where the bundled compact model lives in the source tree.
+pub const BUNDLED_MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/compact.safetensors");
+
+/// The learned refiner for `kind` (`None`: use the null stand-in; said on stderr for `Auto`).
+pub fn model_refiner(kind: RefinerKind, args: &GenerateArgs) -> Result<Option<sgam_model::VqRefiner>> {
+    let path = match (kind, &args.model) {
+        (RefinerKind::Null | RefinerKind::Oracle, _) => return Ok(None),
+        (_, Some(p)) => p.clone(),
+        (RefinerKind::Model, None) => PathBuf::from(BUNDLED_MODEL),
+        (RefinerKind::Auto, None) => {
+            let p = PathBuf::from(BUNDLED_MODEL);
+            if !p.exists() {
+                eprintln!("note: no trained model is bundled yet; using the null stand-in (push-pull hole filling)");
+                return Ok(None);
+            }
+            p
+        }
+    };
+    let sampling = if args.temperature > 0.0 && args.top_k > 1 {
+        sgam_model::Sampling::Temperature { temperature: args.temperature, top_k: args.top_k }
+    } else {
+        sgam_model::Sampling::Argmin
+    };
+    let options = sgam_model::RefinerOptions { sampling, seed: args.seed, ..Default::default() };
+    let r = sgam_model::VqRefiner::from_files(&path, None, options)
+        .with_context(|| format!("{}: cannot load the model", path.display()))?;
+    Ok(Some(r))
 }
 
 fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resumed: bool, seed: Seed, refiner: R) -> Result<()> {
@@ -562,4 +600,20 @@ fn write_flythrough(dir: &Path, n: usize) -> Result<()> {
         enc.encode_frames(frames).map_err(std::io::Error::other)
     })?;
     Ok(())
+}
+
+impl GenerateArgs {
+    /// Default arguments with a given refiner (for evaluation commands that reuse the loader).
+    pub fn for_refiner(kind: RefinerKind, model: Option<PathBuf>) -> Self {
+        use clap::Parser;
+        #[derive(Parser)]
+        struct Wrap {
+            #[command(flatten)]
+            a: GenerateArgs,
+        }
+        let mut a = Wrap::parse_from(["sgam"]).a;
+        a.refiner = kind;
+        a.model = model;
+        a
+    }
 }

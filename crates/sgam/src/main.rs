@@ -4,13 +4,16 @@
 //! crates (`sgam-map`, `sgam-synth`, `sgam-model`, `sgam-metrics`, `sgam-io`).
 
 mod bench;
+mod eval;
 mod fuse;
 mod generate;
 mod generator;
 mod keyframes;
+mod pairs;
 mod progress;
 mod refiners;
 mod synth;
+mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -37,6 +40,12 @@ enum Command {
     Synth(synth::SynthArgs),
     /// Time a hot path on a built-in synthetic scene and print one JSON line.
     Bench(bench::BenchArgs),
+    /// Train the VQ model on the synthetic world (stage 1: autoencoder, stage 2: completion).
+    #[command(subcommand)]
+    Train(train::TrainCommand),
+    /// Measure results (one-step completion quality, mesh-to-mesh distances).
+    #[command(subcommand)]
+    Eval(eval::EvalCommand),
 }
 
 fn main() -> std::process::ExitCode {
@@ -46,6 +55,8 @@ fn main() -> std::process::ExitCode {
         Command::Fuse(a) => fuse::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Bench(a) => bench::run(a),
+        Command::Eval(c) => eval::run(c),
+        Command::Train(c) => train::run(c),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -69,6 +69,11 @@ impl SynthPairs {
 
     /// One pair: target crop (and, for stage 2, its guidance).
     pub fn pair(&mut self, crop: u32, rng: &mut ChaCha8Rng) -> TrainPair {
+        self.sample(crop, rng).1
+    }
+
+    /// One pair and the (crop) camera it was rendered at.
+    pub fn sample(&mut self, crop: u32, rng: &mut ChaCha8Rng) -> (Camera, TrainPair) {
         let seed = self.scene_seeds[rng.random_range(0..self.scene_seeds.len())];
         let renderer = self.renderer(seed);
         let full = dataset_intrinsics(self.res);
@@ -81,7 +86,7 @@ impl SynthPairs {
         let truth = renderer.render(&crop_cam, &self.render).frame;
         if self.stage == Stage::One {
             let n = truth.depth_m.len();
-            return TrainPair { input: truth.clone(), missing: vec![false; n], target: truth };
+            return (crop_cam, TrainPair { input: truth.clone(), missing: vec![false; n], target: truth });
         }
         // views behind the target on the zig-zag grid, within the source radius
         let mut offsets: Vec<(i32, i32)> = Vec::new();
@@ -122,7 +127,7 @@ impl SynthPairs {
                 input.colour.data[i] = [0.0; 3];
             }
         }
-        TrainPair { input, missing: warped.missing, target: truth }
+        (crop_cam, TrainPair { input, missing: warped.missing, target: truth })
     }
 }
 

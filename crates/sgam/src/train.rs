@@ -37,7 +37,9 @@ pub enum TrainCommand {
 
 /// Options shared by both stages.
 #[derive(Debug, Args)]
-#[command(after_help = "Examples:\n  sgam train stage1 --run runs/train-s1 --steps 20000\n  sgam train stage2 --run runs/train-s2 --init runs/train-s1/model.safetensors --steps 10000\n\nRe-running the same command resumes from the run folder's last checkpoint (weights, optimizer\nstate, step, RNG). Validation strips (input | output | target) go to RUN/val/.")]
+#[command(
+    after_help = "Examples:\n  sgam train stage1 --run runs/train-s1 --steps 20000\n  sgam train stage2 --run runs/train-s2 --init runs/train-s1/model.safetensors --steps 10000\n\nRe-running the same command resumes from the run folder's last checkpoint (weights, optimizer\nstate, step, RNG). Validation strips (input | output | target) go to RUN/val/."
+)]
 pub struct TrainArgs {
     /// Run folder (checkpoints, config.json, validation images).
     #[arg(long)]
@@ -158,8 +160,9 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
             log.push(format!("{{\"step\":{},\"val_psnr\":{psnr}}}", r.step));
         }
     };
-    let summary = sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
-        .map_err(anyhow::Error::new)?;
+    let summary =
+        sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
+            .map_err(anyhow::Error::new)?;
     pb.finish_and_clear();
     // append the loss log
     let log_path = args.run.join("log.jsonl");
