@@ -234,9 +234,7 @@ pub fn to_safetensors_bytes(
 pub type TensorMap = BTreeMap<String, NamedTensor>;
 
 /// Parses safetensors bytes (F32, F16 or BF16 tensors) into named f32 tensors plus metadata.
-pub fn from_safetensors_bytes(
-    bytes: &[u8],
-) -> Result<(TensorMap, BTreeMap<String, String>), ModelError> {
+pub fn from_safetensors_bytes(bytes: &[u8]) -> Result<(TensorMap, BTreeMap<String, String>), ModelError> {
     use safetensors::tensor::Dtype;
     let st = safetensors::SafeTensors::deserialize(bytes)
         .map_err(|e| ModelError::Weights(format!("parsing safetensors: {e}")))?;
