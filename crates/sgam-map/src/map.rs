@@ -229,9 +229,11 @@ fn disjoint_mut<'a>(blocks: &'a mut [Block], ids: &[u32]) -> Vec<&'a mut Block> 
 /// Pixels are handled in `s x s` tiles. In a tile whose usable depths span at most the
 /// truncation distance, every pixel's band segment lies inside the "tube" bounded by the four
 /// corner pixels' rays between planar depths `min - trunc` and `max + trunc`; while the tube's
-/// cross-section is at most half a block (`s` is chosen so), any block meeting the tube also
-/// meets one of its four edges, so walking the four edges finds every block the tile's pixels
-/// would (a slight superset). Other tiles (depth edges) walk every pixel's own segment.
+/// cross-section is at most half a block (`s` is chosen so), the tube usually lies in few
+/// blocks. The tube is the convex hull of its four edges, so when the cells the edges cross form
+/// a box, exactly those cells meet the tube; otherwise the bounding box of those cells is
+/// inserted (a superset). Either way every block a tile pixel's band crosses is allocated.
+/// Other tiles (depth edges) walk every pixel's own segment.
 fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let (w, h) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
     let trunc = cfg.trunc_m();
@@ -291,9 +293,55 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
                     if tile > 1 && d_max - d_min <= trunc {
                         let (z0, z1) = ((d_min - trunc).max(0.0), d_max + trunc);
                         let (ua, ub, va, vb) = (u0 as f32, (u1 - 1) as f32, v0 as f32, (v1 - 1) as f32);
+                        let mut edge_cells: [IVec3; 32] = [IVec3::ZERO; 32];
+                        let mut n_cells = 0usize;
+                        let mut overflow = false;
+                        let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
                         for (u, v) in [(ua, va), (ub, va), (ua, vb), (ub, vb)] {
                             let dir = ray(u, v);
-                            walk_cells(origin + dir * z0, origin + dir * z1, &mut insert);
+                            walk_cells(origin + dir * z0, origin + dir * z1, |c| {
+                                lo = lo.min(c);
+                                hi = hi.max(c);
+                                if !edge_cells[..n_cells].contains(&c) {
+                                    if n_cells < edge_cells.len() {
+                                        edge_cells[n_cells] = c;
+                                        n_cells += 1;
+                                    } else {
+                                        overflow = true;
+                                    }
+                                }
+                            });
+                        }
+                        // The tube is the convex hull of its edges. When the cells the edges
+                        // cross form a box, that box (convex) holds the whole tube: those cells
+                        // are exactly the blocks it meets. Otherwise insert the cells' bounding
+                        // box, which also holds the tube.
+                        let extent = hi - lo + IVec3::ONE;
+                        let box_cells = (extent.x * extent.y * extent.z) as usize;
+                        if !overflow && n_cells == box_cells {
+                            edge_cells[..n_cells].iter().for_each(|c| insert(*c));
+                        } else if box_cells <= 64 {
+                            for z in lo.z..=hi.z {
+                                for y in lo.y..=hi.y {
+                                    for x in lo.x..=hi.x {
+                                        insert(IVec3::new(x, y, z));
+                                    }
+                                }
+                            }
+                        } else {
+                            for v in v0..v1 {
+                                for u in u0..u1 {
+                                    let d = depth[v * w + u];
+                                    if usable(d) {
+                                        let dir = ray(u as f32, v as f32);
+                                        walk_cells(
+                                            origin + dir * (d - trunc).max(0.0),
+                                            origin + dir * (d + trunc),
+                                            &mut insert,
+                                        );
+                                    }
+                                }
+                            }
                         }
                     } else {
                         for v in v0..v1 {
@@ -519,6 +567,61 @@ mod tests {
             // sampled ones (corner grazing within f32 rounding).
             assert!(sampled.is_subset(&visited), "{a} -> {b}: {sampled:?} vs {visited:?}");
             assert!(visited.len() <= sampled.len() + 2, "{a} -> {b}: {sampled:?} vs {visited:?}");
+        }
+    }
+
+    #[test]
+    fn tile_allocation_covers_every_pixel_band() {
+        use sgam_core::{Image, Intrinsics, Vec2};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for (fx, voxel, trunc_voxels, depth_max) in [(585.0, 0.02, 4.0, 4.0), (355.0, 0.05, 10.0, 20.0)] {
+            let (w, h) = (160u32, 120u32);
+            let k = Intrinsics::try_new(w, h, fx, fx, 80.0, 60.0).unwrap();
+            let cam =
+                Camera::new(k, Rigid3::look_at(Vec3::new(0.3, -0.2, 0.1), Vec3::new(1.0, 2.0, 3.0), Vec3::Z).unwrap());
+            // A tilted plane with a step (depth edge), noise and holes.
+            let depth: Vec<f32> = (0..w * h)
+                .map(|i| {
+                    let (u, v) = ((i % w) as f32, (i / w) as f32);
+                    if rng.random_bool(0.02) {
+                        return 0.0;
+                    }
+                    let step = if (50.0..70.0).contains(&u) { -0.6 } else { 0.0 };
+                    0.3 * depth_max + 0.004 * u + 0.002 * v + step + rng.random_range(-0.01..0.01)
+                })
+                .collect();
+            let frame =
+                RgbdFrame::try_new(Image::filled(w, h, [0.5; 3]), Image::try_from_vec(w, h, depth.clone()).unwrap())
+                    .unwrap();
+            let cfg = TsdfConfig {
+                voxel_size_m: voxel,
+                trunc_voxels,
+                depth_min_m: 0.1,
+                depth_max_m: depth_max,
+                weight_cap: None,
+            };
+            let (keys, used) = touched_blocks(&frame, &cam, &cfg);
+            let got: FxHashSet<IVec3> = keys.iter().copied().collect();
+            let trunc = cfg.trunc_m();
+            let inv_block = 1.0 / cfg.block_size_m();
+            let mut reference = FxHashSet::default();
+            let mut n = 0;
+            for (i, &d) in depth.iter().enumerate() {
+                if !is_valid_depth(d) {
+                    continue;
+                }
+                n += 1;
+                let uv = Vec2::new((i as u32 % w) as f32, (i as u32 / w) as f32);
+                let a = cam.unproject_world(uv, (d - trunc).max(0.0)) * inv_block;
+                let b = cam.unproject_world(uv, d + trunc) * inv_block;
+                walk_cells(a, b, |c| {
+                    reference.insert(c);
+                });
+            }
+            assert_eq!(used, n);
+            let missing: Vec<_> = reference.difference(&got).collect();
+            assert!(missing.is_empty(), "{} of {} blocks missed: {missing:?}", missing.len(), reference.len());
+            assert!(got.len() <= reference.len() * 3 / 2, "{} vs {}", got.len(), reference.len());
         }
     }
 
