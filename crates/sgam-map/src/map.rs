@@ -149,9 +149,11 @@ impl TsdfMap {
 
     /// Fuses one RGB-D frame seen by `camera` (planar depth, metres; sRGB colour).
     ///
-    /// 1. Every pixel with a depth in `[depth_min_m, depth_max_m]` walks its ray segment from
-    ///    `depth - trunc` to `depth + trunc` (planar) over the block grid; the blocks crossed are
-    ///    allocated (deduplicated, new keys allocated in sorted order).
+    /// 1. Allocation: every block crossed by some usable pixel's band segment (planar depth
+    ///    `depth - trunc .. depth + trunc` along its ray; usable = valid and inside
+    ///    `[depth_min_m, depth_max_m]`) is allocated. Smooth pixel tiles are handled through
+    ///    their four corner rays (a small, conservative superset, see the coverage test); new
+    ///    keys are allocated in sorted order.
     /// 2. In parallel over those blocks (rayon), each voxel centre is projected into the image;
     ///    with the depth `d` at the nearest pixel and the voxel's planar depth `z`,
     ///    `sdf = d - z`; voxels with `sdf < -trunc` are left alone, the others get
