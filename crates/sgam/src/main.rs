@@ -32,7 +32,7 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Grow a world from a seed RGB-D frame along a trajectory (the SGAM loop).
-    Generate(generate::GenerateArgs),
+    Generate(Box<generate::GenerateArgs>),
     /// Fuse a real RGB-D sequence (7-Scenes/3DMatch, CLEVR-Infinite, NeRF transforms.json) into a
     /// coloured mesh with the TSDF map.
     Fuse(fuse::FuseArgs),
@@ -51,7 +51,7 @@ enum Command {
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Generate(a) => generate::run(a),
+        Command::Generate(a) => generate::run(*a),
         Command::Fuse(a) => fuse::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Bench(a) => bench::run(a),

@@ -1,5 +1,6 @@
 //! `sgam train stage1|stage2`: train the VQ model on the synthetic world, on the fly.
 
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
@@ -139,8 +140,15 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     let val = validation_pairs(stage, 4, args.crop);
     std::fs::create_dir_all(args.run.join("val")).with_context(|| format!("{}: cannot create", args.run.display()))?;
     let pb = progress::bar(args.steps, "training");
-    let mut log = Vec::new();
     let run_dir = args.run.clone();
+    // without a terminal (background runs) print a plain line every 50 steps instead of a bar
+    let quiet_bar = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    // the loss log is append-only (one JSON object per line), written as training goes
+    let mut log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(args.run.join("log.jsonl"))
+        .with_context(|| format!("{}: cannot open log.jsonl", args.run.display()))?;
     let mut on_step = |p: &sgam_model::TrainProgress| {
         let r = &p.report;
         pb.set_position(r.step);
@@ -148,30 +156,30 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
             "loss {:.4} l1 {:.4} psnr {:.2} codes {} {:.2} img/s",
             r.total, r.l1, r.psnr, r.active_codes, p.images_per_s
         ));
-        log.push(format!(
-            "{{\"step\":{},\"total\":{},\"l1\":{},\"perceptual\":{},\"quant\":{},\"psnr\":{},\"active_codes\":{},\"images_per_s\":{}}}",
-            r.step, r.total, r.l1, r.perceptual, r.quant, r.psnr, r.active_codes, p.images_per_s
-        ));
+        let mut line = serde_json::json!({
+            "step": r.step, "total": r.total, "l1": r.l1, "perceptual": r.perceptual, "quant": r.quant,
+            "g_gan": r.g_gan, "d_loss": r.d_loss, "psnr": r.psnr, "active_codes": r.active_codes,
+            "images_per_s": p.images_per_s,
+        });
         if let Some((psnr, images)) = &p.validation {
             pb.println(format!("step {}: validation PSNR {psnr:.2} dB", r.step));
             let rows: Vec<Vec<&RgbdFrame>> =
                 images.iter().map(|v: &ValidationImage| vec![&v.input, &v.output, &v.target]).collect();
             let _ = write_strip(&run_dir.join("val").join(format!("step-{:06}.png", r.step)), &rows);
-            log.push(format!("{{\"step\":{},\"val_psnr\":{psnr}}}", r.step));
+            line["val_psnr"] = serde_json::json!(psnr);
+        }
+        let _ = writeln!(log, "{line}");
+        if !quiet_bar && r.step.is_multiple_of(50) {
+            eprintln!(
+                "step {} loss {:.4} l1 {:.4} psnr {:.2} ({:.2} img/s)",
+                r.step, r.total, r.l1, r.psnr, p.images_per_s
+            );
         }
     };
     let summary =
         sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
             .map_err(anyhow::Error::new)?;
     pb.finish_and_clear();
-    // append the loss log
-    let log_path = args.run.join("log.jsonl");
-    let mut text = std::fs::read_to_string(&log_path).unwrap_or_default();
-    for l in &log {
-        text.push_str(l);
-        text.push('\n');
-    }
-    sgam_io::write_atomic(&log_path, |w| std::io::Write::write_all(w, text.as_bytes()))?;
     eprintln!(
         "trained to step {} ({:.2} images/s); weights: {}",
         summary.steps,
