@@ -131,13 +131,7 @@ impl TsdfMap {
 
     /// Recomputes the sign summary of block `id` from its voxels.
     pub(crate) fn refresh_sign_flags(&mut self, id: u32) {
-        let mut flags = 0u8;
-        for v in self.blocks[id as usize].voxels.iter() {
-            if v.weight > 0.0 {
-                flags |= if v.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
-            }
-        }
-        self.sign_flags[id as usize] = flags;
+        self.sign_flags[id as usize] = sign_flags_of(&self.blocks[id as usize]);
     }
 
     pub(crate) fn mark_dirty(&mut self, id: u32) {
@@ -488,58 +482,96 @@ impl<'a> UpdateContext<'a> {
     }
 
     /// Updates one block; returns the number of voxels changed and the block's sign summary.
+    ///
+    /// Voxel centres along a block row are an arithmetic progression in camera space, so each
+    /// row is projected in one branch-free pass over its 8 voxels (vectorised by the compiler);
+    /// the update itself is branch-free too (voxels that take no observation are rewritten with
+    /// their own values), as surfaces make the in-band test unpredictable.
     #[inline(never)]
     fn update_block(&self, block: &mut Block, key: IVec3) -> (usize, u8) {
+        const N: usize = BLOCK_SIZE as usize;
         let vs = self.voxel_size_m;
         let origin = (key * BLOCK_SIZE).as_vec3() + Vec3::splat(0.5);
         let r = self.camera_from_world.rotation;
         let base = self.camera_from_world.transform_point(origin * vs);
         let (dx, dy, dz) = (r.x_axis * vs, r.y_axis * vs, r.z_axis * vs);
         let (wf, hf) = (self.width as f32, self.height as f32);
+        let width = self.width as i32;
         let depth = &self.depth[..self.width * self.height];
+        let colour = self.colour;
+        let has_colour = colour.len() == depth.len() && !depth.is_empty();
         let inv_trunc = 1.0 / self.trunc_m;
         let neg_trunc = -self.trunc_m;
         let cap_prev = self.weight_cap - 1.0;
         // Pixel-centre rounding folded into the principal point.
         let (cx, cy) = (self.cx + 0.5, self.cy + 0.5);
-        let mut n = 0;
-        let mut flags = 0u8;
-        for (row_index, row) in block.voxels.chunks_exact_mut(BLOCK_SIZE as usize).enumerate() {
-            let (y, z) = (row_index % BLOCK_SIZE as usize, row_index / BLOCK_SIZE as usize);
-            let mut p = base + dy * y as f32 + dz * z as f32;
-            for vox in row.iter_mut() {
-                let pc = p;
-                p += dx;
-                if pc.z > 0.0 {
-                    let iz = 1.0 / pc.z;
-                    let u = self.fx * pc.x * iz + cx;
-                    let v = self.fy * pc.y * iz + cy;
-                    if u >= 0.0 && v >= 0.0 && u < wf && v < hf {
-                        // Truncation is floor here (u, v >= 0): the nearest pixel.
-                        let pix = v as usize * self.width + u as usize;
-                        let sdf = depth[pix] - pc.z;
-                        if sdf >= neg_trunc {
-                            let obs = (sdf * inv_trunc).min(1.0);
-                            let wp = vox.weight.min(cap_prev);
-                            let inv = 1.0 / (wp + 1.0);
-                            vox.tsdf = (vox.tsdf * wp + obs) * inv;
-                            if let Some(c) = self.colour.get(pix) {
-                                for ch in 0..3 {
-                                    vox.colour[ch] = (vox.colour[ch] * wp + c[ch]) * inv;
-                                }
-                            }
-                            vox.weight = wp + 1.0;
-                            n += 1;
-                        }
+        let (fx, fy) = (self.fx, self.fy);
+        let lane: [f32; N] = std::array::from_fn(|i| i as f32);
+        let mut n = 0usize;
+        let (mut any_pos, mut any_neg) = (false, false);
+        if depth.is_empty() {
+            return (0, sign_flags_of(block));
+        }
+        for (row_index, row) in block.voxels.chunks_exact_mut(N).enumerate() {
+            let (y, z) = (row_index % N, row_index / N);
+            let p = base + dy * y as f32 + dz * z as f32;
+            // Projection of the row's voxel centres: pixel index (0 when outside, with
+            // `inside` false) and planar depth.
+            let mut pix = [0usize; N];
+            let mut zc = [0.0f32; N];
+            let mut inside = [false; N];
+            for i in 0..N {
+                let pz = p.z + dx.z * lane[i];
+                let px = p.x + dx.x * lane[i];
+                let py = p.y + dx.y * lane[i];
+                let iz = 1.0 / pz;
+                let u = fx * px * iz + cx;
+                let v = fy * py * iz + cy;
+                let ok = pz > 0.0 && u >= 0.0 && v >= 0.0 && u < wf && v < hf;
+                // Truncation is floor here (u, v >= 0): the nearest pixel.
+                let at = (v as i32).wrapping_mul(width).wrapping_add(u as i32);
+                pix[i] = if ok { at as usize } else { 0 };
+                inside[i] = ok;
+                zc[i] = pz;
+            }
+            for i in 0..N {
+                let vox = &mut row[i];
+                let at = pix[i].min(depth.len() - 1);
+                let sdf = depth[at] - zc[i];
+                // NaN (unusable pixel) fails this test.
+                let take = inside[i] && sdf >= neg_trunc;
+                let obs = (sdf * inv_trunc).min(1.0);
+                let wp = vox.weight.min(cap_prev);
+                let inv = 1.0 / (wp + 1.0);
+                let tsdf = if take { (vox.tsdf * wp + obs) * inv } else { vox.tsdf };
+                let weight = if take { wp + 1.0 } else { vox.weight };
+                vox.tsdf = tsdf;
+                vox.weight = weight;
+                if has_colour {
+                    let c = colour[at];
+                    for ch in 0..3 {
+                        let mixed = (vox.colour[ch] * wp + c[ch]) * inv;
+                        vox.colour[ch] = if take { mixed } else { vox.colour[ch] };
                     }
                 }
-                if vox.weight > 0.0 {
-                    flags |= if vox.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
-                }
+                n += take as usize;
+                any_neg |= weight > 0.0 && tsdf < 0.0;
+                any_pos |= weight > 0.0 && tsdf >= 0.0;
             }
         }
-        (n, flags)
+        (n, (any_pos as u8 * HAS_POSITIVE) | (any_neg as u8 * HAS_NEGATIVE))
     }
+}
+
+/// The sign summary ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's observed voxels.
+fn sign_flags_of(block: &Block) -> u8 {
+    let mut flags = 0u8;
+    for v in block.voxels.iter() {
+        if v.weight > 0.0 {
+            flags |= if v.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
+        }
+    }
+    flags
 }
 
 #[cfg(test)]

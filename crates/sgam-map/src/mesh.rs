@@ -37,6 +37,14 @@ impl BlockMesh {
     pub fn is_empty(&self) -> bool {
         self.triangles.is_empty()
     }
+
+    /// Empties the mesh, keeping its buffers.
+    pub fn clear(&mut self) {
+        self.positions.clear();
+        self.colours.clear();
+        self.edge_keys.clear();
+        self.triangles.clear();
+    }
 }
 
 /// Offsets of the 8 cube corners in the 9^3 gather grid.
@@ -84,8 +92,11 @@ impl TsdfMap {
         self.dirty.clear();
         todo.sort_unstable();
         todo.dedup();
+        // Re-mesh into the blocks' own buffers (taken out, refilled, put back): no allocation
+        // once a block's buffers have grown.
+        let mut meshes: Vec<BlockMesh> = todo.iter().map(|&id| std::mem::take(&mut self.meshes[id as usize])).collect();
         let this = &*self;
-        let meshes: Vec<BlockMesh> = todo.par_iter().map(|&id| this.mesh_block(id, weight_threshold)).collect();
+        meshes.par_iter_mut().zip(todo.par_iter()).for_each(|(m, &id)| this.mesh_block(id, weight_threshold, m));
         for (&id, m) in todo.iter().zip(meshes) {
             self.meshes[id as usize] = m;
         }
@@ -210,8 +221,9 @@ impl TsdfMap {
         out
     }
 
-    /// Marching cubes over the 8^3 cells of block `id`.
-    fn mesh_block(&self, id: u32, weight_threshold: f32) -> BlockMesh {
+    /// Marching cubes over the 8^3 cells of block `id`, into `mesh` (cleared first).
+    fn mesh_block(&self, id: u32, weight_threshold: f32, mesh: &mut BlockMesh) {
+        mesh.clear();
         let key = self.keys[id as usize];
         let mut flags = 0u8;
         let neighbours: [Option<&Block>; 8] = std::array::from_fn(|o| {
@@ -225,7 +237,7 @@ impl TsdfMap {
         });
         // No observed voxel on one side of the surface: no zero crossing (skip the gather).
         if flags != HAS_POSITIVE | HAS_NEGATIVE {
-            return BlockMesh::default();
+            return;
         }
         // TSDF per grid point, NaN where unobserved or below the weight threshold.
         let mut val = [f32::NAN; GRID * GRID * GRID];
@@ -256,9 +268,8 @@ impl TsdfMap {
                 }
             }
         }
-        let mut mesh = BlockMesh::default();
         if !(any_inside && any_outside) {
-            return mesh;
+            return;
         }
         let voxel_at = |gi: usize| -> Voxel {
             let (x, y, z) = (gi % GRID, gi / GRID % GRID, gi / (GRID * GRID));
@@ -267,10 +278,6 @@ impl TsdfMap {
                 .map(|b| b.voxels[local_index((x % 8) as i32, (y % 8) as i32, (z % 8) as i32)])
                 .unwrap_or(Voxel::EMPTY)
         };
-        mesh.positions.reserve(128);
-        mesh.colours.reserve(128);
-        mesh.edge_keys.reserve(128);
-        mesh.triangles.reserve(256);
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
@@ -339,6 +346,5 @@ impl TsdfMap {
             mesh.min = lo;
             mesh.max = hi;
         }
-        mesh
     }
 }
