@@ -507,6 +507,11 @@ impl<'a> UpdateContext<'a> {
         let (cx, cy) = (self.cx + 0.5, self.cy + 0.5);
         let (fx, fy) = (self.fx, self.fy);
         let lane: [f32; N] = std::array::from_fn(|i| i as f32);
+        // `x + ROUND - ROUND` rounds `|x| < 2^22` to an integer; pixel indices of images under
+        // 2^22 pixels are then exact in f32.
+        const ROUND: f32 = 12_582_912.0;
+        let small_image = depth.len() < 1 << 22;
+        let (u_end, v_end) = (wf - 0.5, hf - 0.5);
         let mut n = 0usize;
         let (mut any_pos, mut any_neg) = (false, false);
         if depth.is_empty() {
@@ -520,19 +525,39 @@ impl<'a> UpdateContext<'a> {
             let mut pix = [0usize; N];
             let mut zc = [0.0f32; N];
             let mut inside = [false; N];
-            for i in 0..N {
-                let pz = p.z + dx.z * lane[i];
-                let px = p.x + dx.x * lane[i];
-                let py = p.y + dx.y * lane[i];
-                let iz = 1.0 / pz;
-                let u = fx * px * iz + cx;
-                let v = fy * py * iz + cy;
-                let ok = pz > 0.0 && u >= 0.0 && v >= 0.0 && u < wf && v < hf;
-                // Truncation is floor here (u, v >= 0): the nearest pixel.
-                let at = (v as i32).wrapping_mul(width).wrapping_add(u as i32);
-                pix[i] = if ok { at as usize } else { 0 };
-                inside[i] = ok;
-                zc[i] = pz;
+            if small_image {
+                // Rounding by the 1.5 * 2^23 trick keeps the loop vectorisable (`as i32`
+                // saturates and is not); ties round to even instead of up, which only moves
+                // voxels projecting exactly onto a pixel border.
+                for i in 0..N {
+                    let pz = p.z + dx.z * lane[i];
+                    let px = p.x + dx.x * lane[i];
+                    let py = p.y + dx.y * lane[i];
+                    let iz = 1.0 / pz;
+                    let u = fx * px * iz + self.cx;
+                    let v = fy * py * iz + self.cy;
+                    let ok = (pz > 0.0) & (u >= -0.5) & (v >= -0.5) & (u < u_end) & (v < v_end);
+                    let (ur, vr) = ((u + ROUND) - ROUND, (v + ROUND) - ROUND);
+                    let at = ((vr * wf + ur) + ROUND).to_bits().wrapping_sub(ROUND.to_bits());
+                    pix[i] = if ok { at as usize } else { 0 };
+                    inside[i] = ok;
+                    zc[i] = pz;
+                }
+            } else {
+                for i in 0..N {
+                    let pz = p.z + dx.z * lane[i];
+                    let px = p.x + dx.x * lane[i];
+                    let py = p.y + dx.y * lane[i];
+                    let iz = 1.0 / pz;
+                    let u = fx * px * iz + cx;
+                    let v = fy * py * iz + cy;
+                    let ok = pz > 0.0 && u >= 0.0 && v >= 0.0 && u < wf && v < hf;
+                    // Truncation is floor here (u, v >= 0): the nearest pixel.
+                    let at = (v as i32).wrapping_mul(width).wrapping_add(u as i32);
+                    pix[i] = if ok { at as usize } else { 0 };
+                    inside[i] = ok;
+                    zc[i] = pz;
+                }
             }
             for i in 0..N {
                 let vox = &mut row[i];
