@@ -198,7 +198,6 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     map.update_mesh(1.0);
     let mut ms = Vec::with_capacity(args.iterations);
-    let mut extra = serde_json::Map::new();
     for k in 0..args.iterations {
         let (cam, frame) = &seq[warm + k];
         let sources: Vec<SourceView<'_>> =
@@ -250,20 +249,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
             map.update_mesh(1.0);
         }
     }
-    let (median, mean, min) = stats(&mut ms);
-    extra.insert("blocks".into(), json!(map.block_count()));
     let subject = format!("{:?}", args.subject).to_lowercase();
-    let line = json!({
-        "subject": subject, "res": args.res, "iterations": args.iterations,
-        "median_ms": median, "mean_ms": mean, "min_ms": min, "threads": rayon::current_num_threads(),
-        "extra": extra,
-    });
-    if !args.json {
-        eprintln!(
-            "{subject} at {}x{}: median {median:.3} ms (mean {mean:.3}, min {min:.3}) over {} runs",
-            args.res, args.res, args.iterations
-        );
-    }
-    println!("{line}");
+    print_line(&args, &subject, &mut ms, json!({ "blocks": map.block_count() }));
     Ok(())
 }
