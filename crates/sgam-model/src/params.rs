@@ -170,6 +170,8 @@ pub fn load_named<M: Module>(
                 return Param::from_mapped_value(id, old, mapper);
             }
             let new = Tensor::<D>::from_data(TensorData::new(src.values.clone(), shape), &old.device());
+            // keep the parameter trainable when it was (loading into a model under training)
+            let new = if old.is_require_grad() { new.require_grad() } else { new };
             Param::from_mapped_value(id, new, mapper)
         }
     }

@@ -412,12 +412,25 @@ impl Trainer {
         // Generator forward.
         let z = self.model.encode(x);
         let mut report = StepReport { step, ..Default::default() };
+        if use_quant
+            && cfg.stage == Stage::One
+            && cfg.warmup_no_quant_steps > 0
+            && step == cfg.warmup_no_quant_steps + 1
+        {
+            // end of the warm-up: initialise the whole codebook by k-means on the encoder features
+            // collected during it, so quantization starts from codes that span the features
+            self.init_codebook_from_buffer(step)?;
+        }
         let (z_q, quant_loss) = if use_quant {
             let q = quantize(&self.model, z, Sampling::Argmin, None, self.model_config.beta, &mut self.rng)?;
             self.usage.record(&q.indices, step);
             self.buffer.push(&q.features);
             (q.z_q, Some(q.loss))
         } else {
+            if cfg.stage == Stage::One {
+                let [b, d, h, w] = z.dims();
+                self.buffer.push(&to_host(z.clone().detach().permute([0, 2, 3, 1]).reshape([b * h * w, d]))?);
+            }
             (z, None)
         };
         let features = self.model.decode_features(z_q);
@@ -515,7 +528,27 @@ impl Trainer {
         Ok(0)
     }
 
+    /// Overwrites every codebook row by k-means over the feature buffer (end of the warm-up).
+    fn init_codebook_from_buffer(&mut self, step: u64) -> Result<(), ModelError> {
+        if self.buffer.is_empty() {
+            return Ok(());
+        }
+        let k = self.model_config.n_embed;
+        let all: Vec<usize> = (0..k).collect();
+        let mut codebook = codebook_values(&self.model)?;
+        let mut rng = ChaCha8Rng::seed_from_u64(self.train_config.seed ^ step);
+        let iters = self.train_config.kmeans_iters;
+        if kmeans_revive(&mut codebook, self.model_config.embed_dim, &all, &self.buffer, iters, &mut rng) {
+            self.model = set_codebook(self.model.clone(), codebook, k, self.model_config.embed_dim)?;
+            for u in &mut self.usage.last_used {
+                *u = step;
+            }
+        }
+        Ok(())
+    }
+
     /// Runs the model (inference mode, argmin) on validation pairs; mean RGB PSNR and images.
+    /// During the stage-1 warm-up the quantizer is bypassed, as in training.
     pub fn validate(&self, val: &[TrainPair]) -> Result<(f32, Vec<ValidationImage>), ModelError> {
         let model = self.model.valid();
         let dev = self.device.clone();
@@ -526,8 +559,13 @@ impl Trainer {
             let x = pack(&[&pair.input], &[Some(pair.missing.as_slice())], &self.model_config.depth, &dev)?;
             let t = pack_target(&[&pair.target], &self.model_config.depth, &dev)?;
             let z = model.encode(x);
-            let q = quantize(&model, z, Sampling::Argmin, None, self.model_config.beta, &mut rng)?;
-            let out = model.decode(q.z_q);
+            let warmup = self.train_config.stage == Stage::One && self.step <= self.train_config.warmup_no_quant_steps;
+            let z_q = if warmup {
+                z
+            } else {
+                quantize(&model, z, Sampling::Argmin, None, self.model_config.beta, &mut rng)?.z_q
+            };
+            let out = model.decode(z_q);
             let dims = out.dims();
             psnrs.push(psnr_rgb(&to_host(out.clone())?, &to_host(t)?, 1, dims[2] * dims[3]));
             let output =

@@ -327,3 +327,33 @@ fn refiner_from_bytes_completes_frames() {
     });
     assert_eq!(refiner.complete(&f, &missing).unwrap(), s1);
 }
+
+#[test]
+fn warmup_end_initialises_the_codebook_from_encoder_features() {
+    let cfg = ModelConfig::tiny();
+    let mut tc = TrainConfig::new(Stage::One, 0);
+    tc.batch = 2;
+    tc.disc_start = u64::MAX;
+    tc.warmup_no_quant_steps = 2;
+    let pairs = stage1_pairs(2, 32);
+    let mut trainer = Trainer::new(&cfg, &tc).unwrap();
+    let random = sgam_model::quantize::codebook_values(&trainer.model).unwrap();
+    for _ in 0..2 {
+        let r = trainer.step_on(&pairs).unwrap();
+        assert_eq!(r.quant, 0.0, "no quantizer during the warm-up");
+    }
+    // validation during the warm-up bypasses the quantizer, like training
+    let (val_psnr_warm, _) = trainer.validate(&pairs).unwrap();
+    assert!(val_psnr_warm.is_finite());
+    let before = sgam_model::quantize::codebook_values(&trainer.model).unwrap();
+    assert_eq!(before, random, "the codebook does not train during the warm-up");
+    let r = trainer.step_on(&pairs).unwrap();
+    assert!(r.quant > 0.0);
+    let after = sgam_model::quantize::codebook_values(&trainer.model).unwrap();
+    let changed = before.iter().zip(&after).filter(|(a, b)| a != b).count();
+    assert!(
+        changed > after.len() / 2,
+        "k-means must overwrite the codebook ({changed} of {} values changed)",
+        after.len()
+    );
+}
