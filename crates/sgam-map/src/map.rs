@@ -286,6 +286,9 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
                         continue;
                     }
                     used += n;
+                    // smooth tiles: cover the tube of their 4 corner rays; otherwise (or when the
+                    // tube's cells are too many) walk every pixel's ray
+                    let mut covered = false;
                     if tile > 1 && d_max - d_min <= trunc {
                         let (z0, z1) = ((d_min - trunc).max(0.0), d_max + trunc);
                         let (ua, ub, va, vb) = (u0 as f32, (u1 - 1) as f32, v0 as f32, (v1 - 1) as f32);
@@ -316,6 +319,7 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
                         let box_cells = (extent.x * extent.y * extent.z) as usize;
                         if !overflow && n_cells == box_cells {
                             edge_cells[..n_cells].iter().for_each(|c| insert(*c));
+                            covered = true;
                         } else if box_cells <= 64 {
                             for z in lo.z..=hi.z {
                                 for y in lo.y..=hi.y {
@@ -324,22 +328,10 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
                                     }
                                 }
                             }
-                        } else {
-                            for v in v0..v1 {
-                                for u in u0..u1 {
-                                    let d = depth[v * w + u];
-                                    if usable(d) {
-                                        let dir = ray(u as f32, v as f32);
-                                        walk_cells(
-                                            origin + dir * (d - trunc).max(0.0),
-                                            origin + dir * (d + trunc),
-                                            &mut insert,
-                                        );
-                                    }
-                                }
-                            }
+                            covered = true;
                         }
-                    } else {
+                    }
+                    if !covered {
                         for v in v0..v1 {
                             for u in u0..u1 {
                                 let d = depth[v * w + u];
