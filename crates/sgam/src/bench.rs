@@ -78,11 +78,10 @@ pub fn synthetic_sequence(res: u32, n: usize) -> (Renderer, Vec<(Camera, RgbdFra
     (renderer, frames)
 }
 
-fn stats(ms: &mut [f64]) -> (f64, f64, f64) {
-    ms.sort_by(|a, b| a.total_cmp(b));
-    let n = ms.len();
-    let median = if n % 2 == 1 { ms[n / 2] } else { 0.5 * (ms[n / 2 - 1] + ms[n / 2]) };
-    (median, ms.iter().sum::<f64>() / n as f64, ms[0])
+/// `(median, mean, min)` of a non-empty list of timings.
+fn stats(ms: &[f64]) -> (f64, f64, f64) {
+    let min = ms.iter().copied().fold(f64::INFINITY, f64::min);
+    (crate::fuse::median(ms), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
 /// The compact model for timing: the bundled weights when present, else freshly initialised
@@ -98,7 +97,7 @@ fn compact_refiner() -> Result<sgam_model::VqRefiner> {
     Ok(sgam_model::VqRefiner::new(model, config, Default::default(), device))
 }
 
-fn print_line(args: &BenchArgs, subject: &str, ms: &mut [f64], extra: serde_json::Value) {
+fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Value) {
     let (median, mean, min) = stats(ms);
     let line = json!({
         "subject": subject, "res": args.res, "iterations": args.iterations,
@@ -132,7 +131,7 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
     print_line(
         args,
         "refine",
-        &mut ms,
+        &ms,
         json!({"preset": "compact", "embed_dim": params.embed_dim, "n_embed": params.n_embed}),
     );
     Ok(())
@@ -165,17 +164,15 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
         all.push(gen.step(&Camera::new(seed_cam.intrinsics, *p))?);
     }
     let timed = &all[warm..];
-    let med = |f: fn(&crate::generator::StepTimings) -> f64| {
-        let mut v: Vec<f64> = timed.iter().map(f).collect();
-        stats(&mut v).0
-    };
-    let mut ms: Vec<f64> = timed.iter().map(|t| t.total_ms).collect();
+    let med =
+        |f: fn(&crate::generator::StepTimings) -> f64| crate::fuse::median(&timed.iter().map(f).collect::<Vec<f64>>());
+    let ms: Vec<f64> = timed.iter().map(|t| t.total_ms).collect();
     let split = json!({
         "sources_ms": med(|t| t.sources_ms), "render_ms": med(|t| t.render_ms), "warp_ms": med(|t| t.warp_ms),
         "refine_ms": med(|t| t.refine_ms), "integrate_ms": med(|t| t.integrate_ms), "mesh_ms": med(|t| t.mesh_ms),
         "write_ms": med(|t| t.write_ms), "blocks": gen.map.block_count(),
     });
-    print_line(args, "step", &mut ms, split);
+    print_line(args, "step", &ms, split);
     Ok(())
 }
 
@@ -250,6 +247,6 @@ pub fn run(args: BenchArgs) -> Result<()> {
         }
     }
     let subject = format!("{:?}", args.subject).to_lowercase();
-    print_line(&args, &subject, &mut ms, json!({ "blocks": map.block_count() }));
+    print_line(&args, &subject, &ms, json!({ "blocks": map.block_count() }));
     Ok(())
 }
