@@ -375,17 +375,17 @@ fn next_run_dir() -> PathBuf {
 pub fn run(args: GenerateArgs) -> Result<()> {
     let (args, dir, resumed) = match &args.resume {
         Some(dir) => {
-            let (state, _) = read_snapshot(dir)?;
+            let (state, map) = read_snapshot(dir)?;
             let mut a = state.args;
             a.stop_after = args.stop_after;
-            (a, dir.clone(), true)
+            (a, dir.clone(), Some(Resume { cameras: state.cameras, timings: state.timings, map }))
         }
         None => {
             let dir = args.out.clone().unwrap_or_else(next_run_dir);
             if dir.join("snapshot.bin").exists() {
                 bail!("{} already holds a run: continue it with --resume {0}, or choose another --out", dir.display());
             }
-            (args, dir, false)
+            (args, dir, None)
         }
     };
     let seed = load_seed(&args)?;
@@ -435,7 +435,14 @@ pub fn model_refiner(kind: RefinerKind, args: &GenerateArgs) -> Result<Option<sg
     Ok(Some(r))
 }
 
-fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resumed: bool, seed: Seed, refiner: R) -> Result<()> {
+/// What a snapshot restores (read once, when `--resume` starts).
+struct Resume {
+    cameras: Vec<Camera>,
+    timings: Vec<StepTimings>,
+    map: TsdfMap,
+}
+
+fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>, seed: Seed, refiner: R) -> Result<()> {
     let cameras = build_trajectory(args, &seed)?;
     let p = seed.preset;
     let tsdf = TsdfConfig {
@@ -456,12 +463,12 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resumed: bool, seed: Se
         seed: args.seed,
     };
     let mut keyframes = Keyframes::new(dir, config.source_radius_m, 96);
-    let (map, mut timings) = if resumed {
-        let (state, map) = read_snapshot(dir)?;
-        for c in &state.cameras {
+    let resumed = resume.is_some();
+    let (map, mut timings) = if let Some(r) = resume {
+        for c in &r.cameras {
             keyframes.push_camera(*c);
         }
-        (map, state.timings)
+        (r.map, r.timings)
     } else {
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create the run folder", dir.display()))?;
         (TsdfMap::new(tsdf), Vec::new())

@@ -110,8 +110,13 @@ impl Keyframes {
 
     /// The pixels of keyframe `index`, from the cache or the run folder.
     pub fn frame(&mut self, index: usize) -> Result<Arc<RgbdFrame>> {
-        if let Some(f) = self.cache.get(&index) {
-            return Ok(f.clone());
+        if let Some(f) = self.cache.get(&index).cloned() {
+            // most recently used last
+            if let Some(pos) = self.order.iter().position(|i| *i == index) {
+                self.order.remove(pos);
+                self.order.push_back(index);
+            }
+            return Ok(f);
         }
         let (rgb, depth) = Self::frame_paths(&self.root, index);
         let colour = sgam_io::read_rgb(&rgb)?;
