@@ -87,11 +87,20 @@ pub struct RefinerOptions {
     pub seed: u64,
     /// A latent cell counts as missing when more than this fraction of its pixels is missing.
     pub missing_cell_threshold: f32,
+    /// Keep the guidance where it was observed and use the model's output only in missing
+    /// pixels (default). The paper's model regenerates every pixel, which drifts the observed
+    /// part of the frame away from the map; `false` reproduces that behaviour.
+    #[serde(default = "default_true")]
+    pub keep_observed: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 impl Default for RefinerOptions {
     fn default() -> Self {
-        Self { sampling: Sampling::Argmin, seed: 0, missing_cell_threshold: 0.5 }
+        Self { sampling: Sampling::Argmin, seed: 0, missing_cell_threshold: 0.5, keep_observed: true }
     }
 }
 
@@ -154,7 +163,21 @@ impl VqRefiner {
         let q = quantize(&self.model, z, self.options.sampling, Some(&cells), self.config.beta, &mut self.rng)?;
         let out = self.model.decode(q.z_q);
         let full = unpack(out, &self.config.depth)?.pop().ok_or_else(|| ModelError::Input("empty output".into()))?;
-        Ok(crop_frame(&full, w, h))
+        let mut out = crop_frame(&full, w, h);
+        if self.options.keep_observed {
+            keep_observed(&mut out, frame, missing);
+        }
+        Ok(out)
+    }
+}
+
+/// Copies the observed pixels (`!missing`) of `guidance` into `out` (same size).
+fn keep_observed(out: &mut RgbdFrame, guidance: &RgbdFrame, missing: &[bool]) {
+    let w = out.width() as usize;
+    for (i, _) in missing.iter().enumerate().filter(|(_, m)| !**m) {
+        let (u, v) = ((i % w) as u32, (i / w) as u32);
+        *out.colour.at_mut(u, v) = *guidance.colour.at(u, v);
+        *out.depth_m.at_mut(u, v) = *guidance.depth_m.at(u, v);
     }
 }
 

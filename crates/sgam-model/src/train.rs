@@ -86,7 +86,7 @@ pub struct TrainConfig {
     pub disc_start: u64,
     /// Scale of the adaptive adversarial weight (0.8).
     pub disc_weight: f32,
-    /// Weight of the gradient-L1 perceptual term (1.0).
+    /// Weight of the gradient-L1 perceptual term (0.1; at 1.0 it stalls colour learning).
     pub perceptual_weight: f32,
     /// Weight of the quantizer loss (1.0).
     pub codebook_weight: f32,
@@ -124,7 +124,7 @@ impl TrainConfig {
             warmup_no_quant_steps: 0,
             disc_start: 10_000,
             disc_weight: 0.8,
-            perceptual_weight: 1.0,
+            perceptual_weight: 0.1,
             codebook_weight: 1.0,
             disc: DiscriminatorConfig::compact(),
             kmeans_window: 200,

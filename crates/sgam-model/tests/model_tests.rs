@@ -70,7 +70,8 @@ fn compact_forward_shapes_and_ranges() {
     let model = VqModel::new(&cfg, 1, &device).unwrap();
     let x = Tensor::<4>::random([1, 5, 64, 64], Distribution::Uniform(-1.0, 1.0), &device);
     let z = model.encode(x);
-    assert_eq!(z.dims(), [1, cfg.embed_dim, 4, 4]);
+    let f = cfg.downsample_factor();
+    assert_eq!(z.dims(), [1, cfg.embed_dim, 64 / f, 64 / f]);
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let q = quantize(&model, z, Sampling::Argmin, None, 0.25, &mut rng).unwrap();
     assert!(q.indices.iter().all(|&i| (i as usize) < cfg.n_embed));
@@ -326,6 +327,35 @@ fn refiner_from_bytes_completes_frames() {
         ..Default::default()
     });
     assert_eq!(refiner.complete(&f, &missing).unwrap(), s1);
+}
+
+#[test]
+fn refiner_keeps_observed_pixels_unless_asked_to_regenerate() {
+    let cfg = ModelConfig::tiny();
+    let device = default_device();
+    let model = VqModel::new(&cfg, 4, &device).unwrap();
+    let f = synthetic_frame(32, 32, 2);
+    let missing: Vec<bool> = (0..32 * 32).map(|i| i % 32 >= 20).collect();
+    let mut keep = VqRefiner::new(model.clone(), cfg.clone(), RefinerOptions::default(), device.clone());
+    let kept = keep.complete(&f, &missing).unwrap();
+    let options = RefinerOptions { keep_observed: false, ..Default::default() };
+    let regenerated = VqRefiner::new(model, cfg, options, device).complete(&f, &missing).unwrap();
+    for (i, &m) in missing.iter().enumerate() {
+        let (u, v) = ((i % 32) as u32, (i / 32) as u32);
+        if m {
+            // the model's output where the guidance has a hole, in both modes
+            assert_eq!(kept.colour.at(u, v), regenerated.colour.at(u, v));
+        } else {
+            assert_eq!(kept.colour.at(u, v), f.colour.at(u, v));
+            assert_eq!(kept.depth_m.at(u, v), f.depth_m.at(u, v));
+        }
+    }
+    // an untrained model does not reproduce the observed pixels by itself
+    let differs = missing.iter().enumerate().filter(|(_, m)| !**m).any(|(i, _)| {
+        let (u, v) = ((i % 32) as u32, (i / 32) as u32);
+        regenerated.colour.at(u, v) != f.colour.at(u, v)
+    });
+    assert!(differs);
 }
 
 #[test]

@@ -57,7 +57,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                     bail!("the oracle is exact by construction; evaluate null or a model")
                 }
                 kind => {
-                    let g = crate::generate::GenerateArgs::for_refiner(kind, a.model.clone());
+                    let g = crate::generate::GenerateArgs::for_refiner(kind, a.model.clone(), a.regenerate_observed);
                     match crate::generate::model_refiner(kind, &g)? {
                         Some(mut m) => one_step(&a, &mut m)?,
                         None => one_step(&a, &mut crate::refiners::NullRefiner { fill: true })?,
@@ -119,6 +119,10 @@ pub struct OneStepArgs {
     /// Model weights (default: the bundled model).
     #[arg(long)]
     pub model: Option<std::path::PathBuf>,
+    /// Score the model's own output on every pixel (the paper's protocol) instead of keeping
+    /// the guidance where it was observed.
+    #[arg(long)]
+    pub regenerate_observed: bool,
     /// Print only the JSON line.
     #[arg(long)]
     pub json: bool,

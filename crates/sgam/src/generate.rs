@@ -118,6 +118,10 @@ pub struct GenerateArgs {
     /// Codes considered when sampling (top-k nearest).
     #[arg(long, default_value_t = 8)]
     pub top_k: usize,
+    /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
+    /// guidance is kept where it was observed and the model fills only the missing pixels.
+    #[arg(long)]
+    pub regenerate_observed: bool,
     /// Ablation: no global map; the guidance is warped from the previous frame only.
     #[arg(long)]
     pub no_map: bool,
@@ -429,7 +433,12 @@ pub fn model_refiner(kind: RefinerKind, args: &GenerateArgs) -> Result<Option<sg
     } else {
         sgam_model::Sampling::Argmin
     };
-    let options = sgam_model::RefinerOptions { sampling, seed: args.seed, ..Default::default() };
+    let options = sgam_model::RefinerOptions {
+        sampling,
+        seed: args.seed,
+        keep_observed: !args.regenerate_observed,
+        ..Default::default()
+    };
     let r = sgam_model::VqRefiner::from_files(&path, None, options)
         .with_context(|| format!("{}: cannot load the model", path.display()))?;
     Ok(Some(r))
@@ -611,7 +620,7 @@ fn write_flythrough(dir: &Path, n: usize) -> Result<()> {
 
 impl GenerateArgs {
     /// Default arguments with a given refiner (for evaluation commands that reuse the loader).
-    pub fn for_refiner(kind: RefinerKind, model: Option<PathBuf>) -> Self {
+    pub fn for_refiner(kind: RefinerKind, model: Option<PathBuf>, regenerate_observed: bool) -> Self {
         use clap::Parser;
         #[derive(Parser)]
         struct Wrap {
@@ -621,6 +630,7 @@ impl GenerateArgs {
         let mut a = Wrap::parse_from(["sgam"]).a;
         a.refiner = kind;
         a.model = model;
+        a.regenerate_observed = regenerate_observed;
         a
     }
 }
