@@ -39,8 +39,9 @@ pub struct FuseArgs {
     /// Marching-cubes weight threshold (voxels observed fewer times are not meshed).
     #[arg(long, default_value_t = 1.0)]
     pub weight_threshold: f32,
-    /// Re-mesh the changed blocks every N frames (1 = after every frame, as the generator does).
-    #[arg(long, default_value_t = 1)]
+    /// Re-mesh the changed blocks every N frames (1 = after every frame, as the generator does;
+    /// 0 = only the final extraction, as Open3D's fusion examples do).
+    #[arg(long, default_value_t = 0)]
     pub mesh_every: usize,
     /// Also save the TSDF map (versioned binary with checksum) for later use.
     #[arg(long)]
@@ -145,7 +146,7 @@ pub fn run(args: FuseArgs) -> Result<()> {
         let t = Instant::now();
         map.integrate(&frame, &camera);
         integrate_ms.push(t.elapsed().as_secs_f64() * 1e3);
-        if (n + 1) % args.mesh_every.max(1) == 0 {
+        if args.mesh_every > 0 && (n + 1) % args.mesh_every == 0 {
             let t = Instant::now();
             map.update_mesh(args.weight_threshold);
             mesh_ms += t.elapsed().as_secs_f64() * 1e3;

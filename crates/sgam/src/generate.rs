@@ -37,6 +37,9 @@ pub enum TrajectoryKind {
     Spiral,
     /// Poses from --trajectory-file (our transforms.json, TUM or KITTI).
     File,
+    /// Greedy next-pose choice on the zig-zag's grid: of the unvisited neighbouring cells, the
+    /// one whose view of the current map is most complete (see docs/STATUS.md).
+    Greedy,
 }
 
 /// Which refiner completes the guidance.
@@ -280,6 +283,14 @@ fn build_trajectory(args: &GenerateArgs, seed: &Seed) -> Result<Vec<Camera>> {
             let cells: Vec<_> = cells.into_iter().take(n).collect();
             trajectory::grid_poses(s, &cells, step)
         }
+        TrajectoryKind::Greedy => {
+            // poses are chosen while generating; only the seed is known up front
+            let side = args.grid.max((n as f64).sqrt().ceil() as usize);
+            if side * side < n {
+                bail!("--grid {side} has too few cells for {} steps", args.steps);
+            }
+            return Ok(vec![seed.camera]);
+        }
         TrajectoryKind::Line => trajectory::line_poses(s, n, step),
         TrajectoryKind::Circle => trajectory::circle_poses(s, n, args.radius),
         TrajectoryKind::Spiral => trajectory::spiral_poses(s, n, step, args.radius),
@@ -487,22 +498,37 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
         gen.seed(&cameras[0], seed.frame.clone())?;
     }
     let done = gen.keyframes.len();
+    let (total, mut greedy) = if args.trajectory == TrajectoryKind::Greedy {
+        let step = args.step.unwrap_or(seed.preset.step_m);
+        let side = args.grid.max(((args.steps + 1) as f64).sqrt().ceil() as usize);
+        let planner = crate::greedy::GreedyPlanner::new(&cameras[0], step, side, gen.keyframes.cameras())?;
+        (args.steps + 1, Some(planner))
+    } else {
+        (cameras.len(), None)
+    };
     eprintln!(
         "{} {}: {} steps from {} ({} x {} px) -> {}",
         if resumed { "resuming" } else { "generating" },
         format!("{:?}", args.trajectory).to_lowercase(),
-        cameras.len() - 1,
+        total - 1,
         seed.name,
         seed.camera.intrinsics.width,
         seed.camera.intrinsics.height,
         dir.display()
     );
-    let pb = progress::bar((cameras.len() - 1) as u64, "steps");
+    let pb = progress::bar(total as u64 - 1, "steps");
     pb.set_position((done - 1) as u64);
     let start = Instant::now();
     let mut this_run = 0usize;
-    for (i, camera) in cameras.iter().enumerate().skip(done) {
-        let t = gen.step(camera).with_context(|| format!("step {i}"))?;
+    for i in done..total {
+        let camera = match &mut greedy {
+            Some(planner) => match planner.next(&mut gen.map) {
+                Some(c) => c,
+                None => break,
+            },
+            None => cameras[i],
+        };
+        let t = gen.step(&camera).with_context(|| format!("step {i}"))?;
         timings.push(t);
         this_run += 1;
         pb.inc(1);
@@ -515,7 +541,7 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
         if args.mesh_every > 0 && i % args.mesh_every == 0 {
             write_mesh(&dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh(1.0))?;
         }
-        let finished = i + 1 == cameras.len();
+        let finished = i + 1 == total;
         let stopping = args.stop_after.is_some_and(|n| this_run >= n);
         if finished || stopping || i % args.snapshot_every.max(1) == 0 {
             let state = SnapshotState {

@@ -8,6 +8,7 @@ mod eval;
 mod fuse;
 mod generate;
 mod generator;
+mod greedy;
 mod keyframes;
 mod pairs;
 mod progress;
