@@ -74,8 +74,9 @@ pub fn warp_colour(
     config: &WarpConfig,
 ) -> Warped {
     let (w, h) = (target_depth_m.width as usize, target_depth_m.height as usize);
-    // Per source: index, source_from_target, camera distance to the target.
-    let prepared: Vec<(usize, Rigid3, f32)> = sources
+    // Per source: index, source_from_target, camera distance to the target; nearest first, so
+    // with `NearestCamera` the scan stops at the first source farther than an accepted one.
+    let mut prepared: Vec<(usize, Rigid3, f32)> = sources
         .iter()
         .enumerate()
         .filter(|(_, s)| {
@@ -89,6 +90,8 @@ pub fn warp_colour(
             (i, s.camera.world_from_camera.inverse() * target.world_from_camera, dist)
         })
         .collect();
+    prepared.sort_by(|a, b| a.2.total_cmp(&b.2).then(a.0.cmp(&b.0)));
+    let nearest_wins = config.selection == SourceSelection::NearestCamera;
     let mut colour = vec![[0.0f32; 3]; w * h];
     let mut missing = vec![true; w * h];
     let mut index = vec![-1i32; w * h];
@@ -116,6 +119,9 @@ pub fn warp_colour(
                 // (key for comparison, source position in `prepared`, sample location)
                 let mut best: Option<((f32, f32, usize), usize, Vec2)> = None;
                 for (j, (i, source_from_target, dist)) in prepared.iter().enumerate() {
+                    if nearest_wins && best.as_ref().is_some_and(|((d, _, _), _, _)| *dist > *d) {
+                        break; // every later source is at least this far: none can win
+                    }
                     let s = &sources[*i];
                     let pc = source_from_target.transform_point(ray * z_t);
                     let Some(uv) = s.camera.intrinsics.project(pc) else { continue };

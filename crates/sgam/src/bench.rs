@@ -189,7 +189,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let warm = 6usize;
     let (renderer, seq) = synthetic_sequence(args.res, warm + args.iterations + 1);
     let mut map = TsdfMap::new(TsdfConfig::default());
-    let warp = WarpConfig::default();
+    // the generator's warp policy (nearest source camera first)
+    let warp = WarpConfig { selection: sgam_map::SourceSelection::NearestCamera, ..WarpConfig::default() };
     for (c, f) in &seq[..warm] {
         map.integrate(f, c);
     }
