@@ -95,8 +95,7 @@ const EDGE_EPS: f32 = 1e-5;
 impl TsdfMap {
     /// The ids of blocks whose AABB intersects the view frustum between `depth_min_m` and
     /// `depth_max_m`, ascending.
-    fn blocks_in_frustum(&self, camera: &Camera) -> Vec<u32> {
-        let (near, far) = (self.config.depth_min_m.max(1e-4), self.config.depth_max_m);
+    fn blocks_in_frustum(&self, camera: &Camera, near: f32, far: f32) -> Vec<u32> {
         let frustum = Frustum::new(camera, near, far);
         let corners = camera.frustum_corners_world(near, far);
         let (lo, hi) = corners.iter().fold((corners[0], corners[0]), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
@@ -125,16 +124,25 @@ impl TsdfMap {
     /// The rasterizer behind [`TsdfMap::render`], on the block meshes as they are (no
     /// re-meshing).
     pub fn rasterize(&self, camera: &Camera) -> Rendered {
+        self.rasterize_range(camera, self.config.depth_min_m, self.config.depth_max_m)
+    }
+
+    /// [`TsdfMap::rasterize`] with its own depth range instead of the map's (e.g. an overview
+    /// of the whole map from farther away than the sensor range).
+    pub fn rasterize_range(&self, camera: &Camera, near_m: f32, far_m: f32) -> Rendered {
         let k = camera.intrinsics;
         let (w, h) = (k.width as usize, k.height as usize);
         let mut out = Rendered::empty(k.width, k.height);
         if !camera.world_from_camera.is_finite() {
             return out;
         }
-        let ids: Vec<u32> =
-            self.blocks_in_frustum(camera).into_iter().filter(|&i| !self.meshes[i as usize].is_empty()).collect();
+        let (near, far) = (near_m.max(1e-4), far_m);
+        let ids: Vec<u32> = self
+            .blocks_in_frustum(camera, near, far)
+            .into_iter()
+            .filter(|&i| !self.meshes[i as usize].is_empty())
+            .collect();
         out.blocks_visited = ids.len();
-        let (near, far) = (self.config.depth_min_m.max(1e-4), self.config.depth_max_m);
         let camera_from_world = camera.world_from_camera.inverse();
         // Blocks are split into contiguous chunks, each rasterized into its own z-buffer; the
         // merge keeps the nearest hit and, on exact ties, the earlier chunk -- the same result as

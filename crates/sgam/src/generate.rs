@@ -590,6 +590,12 @@ fn finish_outputs<R: Refiner>(
     if !args.no_video {
         write_flythrough(dir, cams.len())?;
     }
+    let cams_owned = cams.to_vec();
+    if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams_owned[0], 1280, 800) {
+        let img = crate::overview::render_overview(&gen.map, &cam, near, far);
+        sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
+    }
+    sgam_io::write_rgb_png(&dir.join("strip.png"), &crate::overview::frame_strip(dir, cams_owned.len(), 6)?)?;
     let col = |f: fn(&StepTimings) -> f64| median(&timings.iter().map(f).collect::<Vec<_>>());
     let summary = serde_json::json!({
         "args": args,
@@ -620,6 +626,7 @@ fn finish_outputs<R: Refiner>(
     if !args.no_video {
         eprintln!("  fly-through: {}", dir.join("flythrough.gif").display());
     }
+    eprintln!("  overview:    {}  (and strip.png: 6 frames)", dir.join("overview.png").display());
     eprintln!("  poses:       {}  (nerfstudio / instant-ngp)", dir.join("transforms.json").display());
     eprintln!("  frames:      {}/rgb, {}/depth", dir.display(), dir.display());
     Ok(())

@@ -4,12 +4,14 @@
 //! crates (`sgam-map`, `sgam-synth`, `sgam-model`, `sgam-metrics`, `sgam-io`).
 
 mod bench;
+mod convert;
 mod eval;
 mod fuse;
 mod generate;
 mod generator;
 mod greedy;
 mod keyframes;
+mod overview;
 mod pairs;
 mod progress;
 mod refiners;
@@ -47,6 +49,8 @@ enum Command {
     /// Measure results (one-step completion quality, mesh-to-mesh distances).
     #[command(subcommand)]
     Eval(eval::EvalCommand),
+    /// Import the SGAM authors' PyTorch Lightning checkpoint (`last.ckpt`) as a safetensors model.
+    ConvertCheckpoint(convert::ConvertArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -58,6 +62,7 @@ fn main() -> std::process::ExitCode {
         Command::Bench(a) => bench::run(a),
         Command::Eval(c) => eval::run(c),
         Command::Train(c) => train::run(c),
+        Command::ConvertCheckpoint(a) => convert::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
