@@ -63,8 +63,10 @@ pub fn convert_lightning_checkpoint(
     };
     let device = crate::default_device();
     let model = VqModel::new(&config, 0, &device)?;
-    let model = load_named(model, &tensors, false, true)
-        .map_err(|e| ModelError::Weights(format!("{}: {e}", ckpt.display())))?;
+    let model = load_named(model, &tensors, false, true).map_err(|e| match e {
+        ModelError::Weights(m) => ModelError::Weights(format!("{}: {m}", ckpt.display())),
+        other => other,
+    })?;
     crate::refiner::save_model(&model, &config, out, WeightPrecision::F32)?;
     Ok(config)
 }

@@ -21,6 +21,7 @@ pub mod blocks;
 pub mod config;
 pub mod convert;
 pub mod loss;
+pub mod lpips;
 pub mod model;
 pub mod packing;
 pub mod params;

@@ -57,7 +57,11 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                     bail!("the oracle is exact by construction; evaluate null or a model")
                 }
                 kind => {
-                    let g = crate::generate::GenerateArgs::for_refiner(kind, a.model.clone(), a.regenerate_observed);
+                    let g = crate::generate::GenerateArgs::for_refiner(
+                        kind,
+                        a.model.clone(),
+                        a.regenerate_observed || a.autoencode,
+                    );
                     match crate::generate::model_refiner(kind, &g)? {
                         Some(mut m) => one_step(&a, &mut m)?,
                         None => one_step(&a, &mut crate::refiners::NullRefiner { fill: true })?,
@@ -123,6 +127,10 @@ pub struct OneStepArgs {
     /// the guidance where it was observed.
     #[arg(long)]
     pub regenerate_observed: bool,
+    /// Stage-1 reconstruction instead of completion: the refiner gets the clean ground truth
+    /// (nothing missing) and must reproduce it (implies --regenerate-observed).
+    #[arg(long)]
+    pub autoencode: bool,
     /// Print only the JSON line.
     #[arg(long)]
     pub json: bool,
@@ -161,7 +169,11 @@ pub fn one_step<R: sgam_core::Refiner>(args: &OneStepArgs, refiner: &mut R) -> R
         let mut pairs = crate::pairs::SynthPairs::new(sgam_model::Stage::Two, vec![seed], args.res);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         for v in 0..args.views {
-            let (camera, pair) = pairs.sample(args.res, &mut rng);
+            let (camera, mut pair) = pairs.sample(args.res, &mut rng);
+            if args.autoencode {
+                pair.input = pair.target.clone();
+                pair.missing.fill(false);
+            }
             let guidance = sgam_core::Guidance {
                 camera,
                 frame: pair.input.clone(),
@@ -187,6 +199,7 @@ pub fn one_step<R: sgam_core::Refiner>(args: &OneStepArgs, refiner: &mut R) -> R
     }
     Ok(json!({
         "images": acc.psnr.len(), "scenes": args.scenes, "res": args.res,
+        "mode": if args.autoencode { "autoencode" } else if args.regenerate_observed { "regenerate-observed" } else { "keep-observed" },
         "psnr": mean(&acc.psnr), "ssim": mean(&acc.ssim),
         "psnr_visible": mean(&acc.psnr_visible), "ssim_visible": mean(&acc.ssim_visible),
         "psnr_missing": mean(&acc.psnr_missing), "ssim_missing": mean(&acc.ssim_missing),

@@ -56,6 +56,25 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
         "--no-video",
     ]);
     assert!(world.join("rgb/00002.png").exists());
+    assert!(world.join("overview.png").exists() && world.join("strip.png").exists());
+    // one-step evaluation in its three modes: the missing pixels get the same model output
+    // whether observed pixels are kept or regenerated; kept observed pixels score higher
+    let eval = |mode: &[&str]| -> serde_json::Value {
+        let mut a = vec!["eval", "one-step", "--refiner", "model", "--model", model.to_str().unwrap()];
+        a.extend(["--scenes", "1", "--views", "2", "--res", "32", "--json"]);
+        a.extend(mode);
+        let out = sgam(&a);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let keep = eval(&[]);
+    let regen = eval(&["--regenerate-observed"]);
+    let auto = eval(&["--autoencode"]);
+    assert_eq!(keep["mode"], "keep-observed");
+    assert_eq!(auto["mode"], "autoencode");
+    assert_eq!(keep["psnr_missing"], regen["psnr_missing"]);
+    assert!(keep["psnr_visible"].as_f64().unwrap() > regen["psnr_visible"].as_f64().unwrap());
+    assert!(auto["psnr"].as_f64().unwrap().is_finite() && auto["missing_fraction"].as_f64().unwrap() == 0.0);
     // a corrupt model is a clear error
     let bad = tmp.path().join("bad.safetensors");
     std::fs::write(&bad, b"not a model").unwrap();
@@ -90,4 +109,24 @@ fn fuse_rejects_bad_inputs_with_the_path() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("m.xyz"));
     assert!(!tmp.path().join("m.ply").exists(), "no output may be written on failure");
+}
+
+#[test]
+fn greedy_trajectory_steps_to_neighbouring_cells() {
+    let tmp = tempfile::tempdir().unwrap();
+    let world = tmp.path().join("g");
+    let w = world.to_str().unwrap();
+    ok(&["generate", "--out", w, "--res", "32", "--steps", "5", "--trajectory", "greedy", "--refiner", "null"]);
+    let t: serde_json::Value = serde_json::from_slice(&std::fs::read(world.join("transforms.json")).unwrap()).unwrap();
+    let frames = t["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 6);
+    let xy: Vec<(f64, f64)> = frames
+        .iter()
+        .map(|f| (f["transform_matrix"][0][3].as_f64().unwrap(), f["transform_matrix"][1][3].as_f64().unwrap()))
+        .collect();
+    for (k, p) in xy.iter().enumerate().skip(1) {
+        assert!(!xy[..k].contains(p), "pose {k} revisits {p:?}");
+        // within one grid step (0.408 m, diagonals included) of an earlier pose
+        assert!(xy[..k].iter().any(|q| (p.0 - q.0).abs() < 0.41 && (p.1 - q.1).abs() < 0.41), "pose {k} jumps");
+    }
 }
