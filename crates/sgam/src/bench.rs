@@ -84,17 +84,9 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
     (crate::fuse::median(ms), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
-/// The compact model for timing: the bundled weights when present, else freshly initialised
-/// ones (the forward pass costs the same).
+/// The bundled compact model, for timing.
 fn compact_refiner() -> Result<sgam_model::VqRefiner> {
-    let bundled = std::path::Path::new(crate::generate::BUNDLED_MODEL);
-    if bundled.exists() {
-        return Ok(sgam_model::VqRefiner::from_files(bundled, None, Default::default())?);
-    }
-    let device = sgam_model::default_device();
-    let config = sgam_model::ModelConfig::compact();
-    let model = sgam_model::VqModel::new(&config, 0, &device)?;
-    Ok(sgam_model::VqRefiner::new(model, config, Default::default(), device))
+    Ok(sgam_model::VqRefiner::from_bytes(crate::generate::BUNDLED_MODEL, None, Default::default())?)
 }
 
 fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Value) {

@@ -45,9 +45,10 @@ pub enum TrajectoryKind {
 /// Which refiner completes the guidance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 pub enum RefinerKind {
-    /// The bundled model when present, else the null stand-in (said on start-up).
+    /// The VQ model: --model when given, else the bundled compact model (trained on the
+    /// synthetic CLEVR-Infinite world).
     Auto,
-    /// The VQ model from --model (safetensors with its config embedded).
+    /// Same as auto (kept for scripts that name it).
     Model,
     /// Stand-in: holes filled by push-pull interpolation.
     Null,
@@ -421,23 +422,16 @@ pub fn run(args: GenerateArgs) -> Result<()> {
     }
 }
 
-/// Where the bundled compact model lives in the source tree.
-pub const BUNDLED_MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/compact.safetensors");
+/// The bundled compact model (f16 safetensors, config embedded; see docs/MODEL.md), compiled
+/// into the binary so an installed `sgam` needs no files next to it.
+pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/compact.safetensors");
 
-/// The learned refiner for `kind` (`None`: use the null stand-in; said on stderr for `Auto`).
+/// The learned refiner for `kind` (`None` for the stand-ins).
 pub fn model_refiner(kind: RefinerKind, args: &GenerateArgs) -> Result<Option<sgam_model::VqRefiner>> {
     let path = match (kind, &args.model) {
         (RefinerKind::Null | RefinerKind::Oracle, _) => return Ok(None),
-        (_, Some(p)) => p.clone(),
-        (RefinerKind::Model, None) => PathBuf::from(BUNDLED_MODEL),
-        (RefinerKind::Auto, None) => {
-            let p = PathBuf::from(BUNDLED_MODEL);
-            if !p.exists() {
-                eprintln!("note: no trained model is bundled yet; using the null stand-in (push-pull hole filling)");
-                return Ok(None);
-            }
-            p
-        }
+        (_, Some(p)) => Some(p.clone()),
+        (RefinerKind::Model | RefinerKind::Auto, None) => None,
     };
     let sampling = if args.temperature > 0.0 && args.top_k > 1 {
         sgam_model::Sampling::Temperature { temperature: args.temperature, top_k: args.top_k }
@@ -450,8 +444,12 @@ pub fn model_refiner(kind: RefinerKind, args: &GenerateArgs) -> Result<Option<sg
         keep_observed: !args.regenerate_observed,
         ..Default::default()
     };
-    let r = sgam_model::VqRefiner::from_files(&path, None, options)
-        .with_context(|| format!("{}: cannot load the model", path.display()))?;
+    let r = match path {
+        Some(path) => sgam_model::VqRefiner::from_files(&path, None, options)
+            .with_context(|| format!("{}: cannot load the model", path.display()))?,
+        None => sgam_model::VqRefiner::from_bytes(BUNDLED_MODEL, None, options)
+            .context("the bundled model (models/compact.safetensors) cannot be loaded")?,
+    };
     Ok(Some(r))
 }
 

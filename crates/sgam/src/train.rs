@@ -34,6 +34,36 @@ pub enum TrainCommand {
     /// Stage 2: fine-tune the encoder and mask conv on incomplete -> complete pairs built by the
     /// generator's own render + warp path; codebook, quant convs and decoder frozen.
     Stage2(TrainArgs),
+    /// Write a run's weights as a shippable model file (f16 by default, config embedded).
+    #[command(
+        after_help = "Example (the bundled model):\n  sgam train export runs/s2/model.safetensors models/compact.safetensors"
+    )]
+    Export(ExportArgs),
+}
+
+/// Arguments of `sgam train export`.
+#[derive(Debug, Args)]
+pub struct ExportArgs {
+    /// Weights to export (a run's model.safetensors).
+    pub input: PathBuf,
+    /// Output safetensors file (written atomically).
+    pub output: PathBuf,
+    /// Keep 32-bit floats.
+    #[arg(long)]
+    pub f32: bool,
+}
+
+fn export(a: &ExportArgs) -> Result<()> {
+    let device = sgam_model::default_device();
+    let (model, config) = sgam_model::refiner::load_model(&a.input, None, &device)
+        .with_context(|| format!("{}: cannot load the model", a.input.display()))?;
+    let precision =
+        if a.f32 { sgam_model::params::WeightPrecision::F32 } else { sgam_model::params::WeightPrecision::F16 };
+    sgam_model::refiner::save_model(&model, &config, &a.output, precision)
+        .with_context(|| format!("{}: cannot write the model", a.output.display()))?;
+    let bytes = std::fs::metadata(&a.output).map(|m| m.len()).unwrap_or(0);
+    eprintln!("{} -> {} ({} preset, {:.1} MB)", a.input.display(), a.output.display(), config.name, bytes as f64 / 1e6);
+    Ok(())
 }
 
 /// Options shared by both stages.
@@ -122,6 +152,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     let (stage, args) = match cmd {
         TrainCommand::Stage1(a) => (Stage::One, a),
         TrainCommand::Stage2(a) => (Stage::Two, a),
+        TrainCommand::Export(a) => return export(&a),
     };
     if args.scenes == 0 || args.scenes >= HELD_OUT_SEED_BASE {
         bail!("--scenes must be in 1..{HELD_OUT_SEED_BASE}");

@@ -143,6 +143,27 @@ fn interrupted_then_resumed_run_equals_uninterrupted_run() {
 }
 
 #[test]
+fn resumed_run_with_the_bundled_model_and_sampling_equals_uninterrupted_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    let common =
+        ["--res", "64", "--steps", "4", "--temperature", "1.0", "--top-k", "4", "--no-video", "--snapshot-every", "1"];
+    let mut args = vec!["generate", "--out", a.to_str().unwrap()];
+    args.extend(common);
+    ok(&args);
+    let mut args = vec!["generate", "--out", b.to_str().unwrap(), "--stop-after", "2"];
+    args.extend(common);
+    ok(&args);
+    ok(&["generate", "--resume", b.to_str().unwrap()]);
+    let fa = files_under(&a);
+    assert!(fa.iter().any(|p| p.ends_with("rgb/00004.png")));
+    for p in fa {
+        let rel = p.strip_prefix(&a).unwrap();
+        assert_eq!(std::fs::read(&p).unwrap(), std::fs::read(b.join(rel)).unwrap(), "{} differs", rel.display());
+    }
+}
+
+#[test]
 fn transforms_json_reads_back_through_our_sequence_reader() {
     let tmp = tempfile::tempdir().unwrap();
     let run = tmp.path().join("run");
