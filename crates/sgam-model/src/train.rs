@@ -18,7 +18,7 @@ use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -88,6 +88,11 @@ pub struct TrainConfig {
     pub disc_weight: f32,
     /// Weight of the gradient-L1 perceptual term (0.1; at 1.0 it stalls colour learning).
     pub perceptual_weight: f32,
+    /// Weight of the L1 term on pixels missing in the input, relative to observed ones (1 =
+    /// plain L1). Stage 2 raises it: the refiner keeps observed pixels at inference, and
+    /// missing pixels are a few percent of a frame.
+    #[serde(default = "one")]
+    pub missing_weight: f32,
     /// Weight of the quantizer loss (1.0).
     pub codebook_weight: f32,
     /// Discriminator architecture.
@@ -125,6 +130,7 @@ impl TrainConfig {
             disc_start: 10_000,
             disc_weight: 0.8,
             perceptual_weight: 0.1,
+            missing_weight: 1.0,
             codebook_weight: 1.0,
             disc: DiscriminatorConfig::compact(),
             kmeans_window: 200,
@@ -435,7 +441,12 @@ impl Trainer {
         };
         let features = self.model.decode_features(z_q);
         let rec = self.model.decoder.forward_head(features.clone());
-        let l1_loss = l1(rec.clone(), target.clone());
+        let l1_loss = if cfg.missing_weight != 1.0 {
+            let weights = missing_weights(batch, cfg.missing_weight, &dev);
+            weighted_l1(rec.clone(), target.clone(), weights)
+        } else {
+            l1(rec.clone(), target.clone())
+        };
         let perc = gradient_l1(rec.clone(), target.clone());
         report.l1 = scalar(&l1_loss)?;
         report.perceptual = scalar(&perc)?;
@@ -575,6 +586,25 @@ impl Trainer {
         let mean = psnrs.iter().sum::<f32>() / psnrs.len().max(1) as f32;
         Ok((mean, images))
     }
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+/// Per-pixel loss weights `[B, 1, H, W]`: `missing_weight` where the input is missing, 1 elsewhere.
+fn missing_weights(batch: &[TrainPair], missing_weight: f32, dev: &Device) -> Tensor<4> {
+    let (h, w) = (batch[0].target.height() as usize, batch[0].target.width() as usize);
+    let values: Vec<f32> =
+        batch.iter().flat_map(|p| p.missing.iter().map(|&m| if m { missing_weight } else { 1.0 })).collect();
+    Tensor::from_data(TensorData::new(values, [batch.len(), 1, h, w]), dev)
+}
+
+/// L1 over all channels with per-pixel weights, normalised by the weights' mean.
+fn weighted_l1(pred: Tensor<4>, target: Tensor<4>, weights: Tensor<4>) -> Tensor<1> {
+    let norm = weights.clone().mean();
+    let weights = weights.expand(pred.dims());
+    ((pred - target).abs() * weights).mean() / norm
 }
 
 fn scalar(t: &Tensor<1>) -> Result<f32, ModelError> {

@@ -98,6 +98,11 @@ pub struct TrainArgs {
     /// fit from 32 dB to 15 dB in 300 steps; 0.1 keeps its edge sharpening without that.
     #[arg(long, default_value_t = 0.1)]
     pub perceptual_weight: f32,
+    /// Weight of the L1 loss on pixels missing in the input relative to observed ones
+    /// (default: 1 in stage 1, 10 in stage 2, where missing pixels are a few percent of a crop
+    /// and the only ones the refiner's output is used for).
+    #[arg(long)]
+    pub missing_weight: Option<f32>,
     /// Stage 1: steps without quantization first (the paper: 30k of 90k).
     #[arg(long, default_value_t = 0)]
     pub warmup_no_quant: u64,
@@ -177,6 +182,10 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     cfg.crop = args.crop;
     cfg.lr = args.lr;
     cfg.perceptual_weight = args.perceptual_weight;
+    cfg.missing_weight = args.missing_weight.unwrap_or(if stage == Stage::Two { 10.0 } else { 1.0 });
+    if !(cfg.missing_weight.is_finite() && cfg.missing_weight > 0.0) {
+        bail!("--missing-weight must be positive");
+    }
     cfg.warmup_no_quant_steps = args.warmup_no_quant;
     cfg.disc_start = args.disc_start;
     cfg.ckpt_every = args.ckpt_every;
