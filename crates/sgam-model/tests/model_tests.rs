@@ -230,6 +230,24 @@ fn tiny_model_overfits_one_batch() {
 }
 
 #[test]
+fn missing_weight_reweights_only_the_missing_pixels() {
+    // The first step's L1 (same weights, same batch) with missing weight 1 and 10: equal when
+    // nothing is missing, different when half of every input is missing.
+    let cfg = ModelConfig::tiny();
+    let first_l1 = |pairs: &[TrainPair], w: f32| {
+        let mut tc = TrainConfig::new(Stage::One, 0);
+        tc.batch = pairs.len();
+        tc.missing_weight = w;
+        tc.warmup_no_quant_steps = 10;
+        Trainer::new(&cfg, &tc).unwrap().step_on(pairs).unwrap().l1
+    };
+    let clean = stage1_pairs(2, 32);
+    assert!((first_l1(&clean, 1.0) - first_l1(&clean, 10.0)).abs() < 1e-6);
+    let holes = stage2_pairs(2, 32);
+    assert!((first_l1(&holes, 1.0) - first_l1(&holes, 10.0)).abs() > 1e-4);
+}
+
+#[test]
 fn stage2_freezes_codebook_and_decoder() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = ModelConfig::tiny();
