@@ -36,13 +36,7 @@ pub fn run(args: ConvertArgs) -> Result<()> {
         bail!("{}: no such checkpoint file", args.input.display());
     }
     let config = match (&args.model_config, args.codebook) {
-        (Some(path), _) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-            let c: ModelConfig = serde_json::from_str(&text)
-                .with_context(|| format!("{}: not a model configuration", path.display()))?;
-            c.validate().with_context(|| format!("{}: invalid model configuration", path.display()))?;
-            Some(c)
-        }
+        (Some(path), _) => Some(crate::train::read_model_config(path)?),
         (None, Some(0)) => bail!("--codebook must be at least 1"),
         (None, Some(n)) => Some(ModelConfig { n_embed: n, ..ModelConfig::paper() }),
         (None, None) => None,

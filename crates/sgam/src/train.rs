@@ -152,6 +152,15 @@ pub fn write_strip(path: &Path, rows: &[Vec<&RgbdFrame>]) -> Result<()> {
     Ok(())
 }
 
+/// Reads and validates a ModelConfig JSON file (`--model-config`).
+pub fn read_model_config(path: &Path) -> Result<ModelConfig> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let c: ModelConfig =
+        serde_json::from_str(&text).with_context(|| format!("{}: not a model configuration", path.display()))?;
+    c.validate().with_context(|| format!("{}: invalid model configuration", path.display()))?;
+    Ok(c)
+}
+
 /// Runs `sgam train`.
 pub fn run(cmd: TrainCommand) -> Result<()> {
     let (stage, args) = match cmd {
@@ -166,13 +175,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         bail!("stage 2 starts from a stage-1 model: pass --init RUN1/model.safetensors");
     }
     let model_config = match (&args.model_config, args.preset) {
-        (Some(path), _) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-            let c: ModelConfig = serde_json::from_str(&text)
-                .with_context(|| format!("{}: not a model configuration", path.display()))?;
-            c.validate().with_context(|| format!("{}: invalid model configuration", path.display()))?;
-            c
-        }
+        (Some(path), _) => read_model_config(path)?,
         (None, Preset::Compact) => ModelConfig::compact(),
         (None, Preset::Paper) => ModelConfig::paper(),
         (None, Preset::Tiny) => ModelConfig::tiny(),
