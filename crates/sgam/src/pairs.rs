@@ -34,6 +34,7 @@ pub struct SynthPairs {
     step_m: f32,
     source_radius_m: f32,
     k_sources: usize,
+    wide_holes: f64,
 }
 
 impl SynthPairs {
@@ -49,7 +50,16 @@ impl SynthPairs {
             step_m: 0.408,
             source_radius_m: 1.0,
             k_sources: 5,
+            wide_holes: 0.0,
         }
+    }
+
+    /// With probability `p`, a stage-2 pair's map comes from one or two views 1-3 grid steps
+    /// away in a random direction instead of the neighbours behind the target: large holes,
+    /// like those at the zig-zag's turns, which the neighbours behind never leave.
+    pub fn with_wide_holes(mut self, p: f64) -> Self {
+        self.wide_holes = p.clamp(0.0, 1.0);
+        self
     }
 
     fn renderer(&mut self, seed: u64) -> Arc<Renderer> {
@@ -101,6 +111,15 @@ impl SynthPairs {
         offsets.shuffle(rng);
         let keep = rng.random_range(2..=offsets.len());
         offsets.truncate(keep);
+        if self.wide_holes > 0.0 && rng.random_bool(self.wide_holes) {
+            let dirs = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)];
+            let (a, b) = dirs[rng.random_range(0..dirs.len())];
+            let k = rng.random_range(1..=3);
+            offsets = vec![(a * k, b * k)];
+            if rng.random_bool(0.5) {
+                offsets.push((a * (k + 1), b * (k + 1)));
+            }
+        }
         offsets.sort_by_key(|(di, dj)| di * di + dj * dj);
         let mut map = TsdfMap::new(TsdfConfig::default());
         let views: Vec<(Camera, RgbdFrame)> = offsets
@@ -134,5 +153,31 @@ impl SynthPairs {
 impl PairSource for SynthPairs {
     fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>> {
         Ok((0..batch).map(|_| self.pair(crop, rng)).collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    fn mean_missing(p: f64) -> f64 {
+        let mut pairs = SynthPairs::new(Stage::Two, vec![3, 4], 64).with_wide_holes(p);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let n = 12;
+        (0..n)
+            .map(|_| {
+                let pair = pairs.pair(64, &mut rng);
+                pair.missing.iter().filter(|m| **m).count() as f64 / pair.missing.len() as f64
+            })
+            .sum::<f64>()
+            / n as f64
+    }
+
+    #[test]
+    fn wide_holes_leave_more_of_the_target_missing() {
+        let (narrow, wide) = (mean_missing(0.0), mean_missing(1.0));
+        eprintln!("mean missing fraction: neighbours behind {narrow:.3}, wide holes {wide:.3}");
+        assert!(wide > 2.0 * narrow && wide > 0.05, "missing fraction {narrow:.3} -> {wide:.3}");
     }
 }

@@ -103,6 +103,11 @@ pub struct TrainArgs {
     /// and the only ones the refiner's output is used for).
     #[arg(long)]
     pub missing_weight: Option<f32>,
+    /// Stage 2: share of pairs whose guidance comes from 1-2 views up to 3 grid steps away in
+    /// a random direction (large holes, as at the zig-zag's turns); 0 = only the neighbours
+    /// behind the target (the bundled model's training).
+    #[arg(long, default_value_t = 0.0)]
+    pub wide_holes: f64,
     /// Stage 1: steps without quantization first (the paper: 30k of 90k).
     #[arg(long, default_value_t = 0)]
     pub warmup_no_quant: u64,
@@ -195,7 +200,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     cfg.val_every = args.val_every;
     cfg.seed = args.seed;
     cfg.init_weights = args.init.clone();
-    let mut source = SynthPairs::new(stage, (0..args.scenes).collect(), 256);
+    let mut source = SynthPairs::new(stage, (0..args.scenes).collect(), 256).with_wide_holes(args.wide_holes);
     let val = validation_pairs(stage, 4, args.crop);
     std::fs::create_dir_all(args.run.join("val")).with_context(|| format!("{}: cannot create", args.run.display()))?;
     let pb = progress::bar(args.steps, "training");
