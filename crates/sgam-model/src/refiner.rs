@@ -173,11 +173,11 @@ impl VqRefiner {
 
 /// Copies the observed pixels (`!missing`) of `guidance` into `out` (same size).
 fn keep_observed(out: &mut RgbdFrame, guidance: &RgbdFrame, missing: &[bool]) {
-    let w = out.width() as usize;
-    for (i, _) in missing.iter().enumerate().filter(|(_, m)| !**m) {
-        let (u, v) = ((i % w) as u32, (i / w) as u32);
-        *out.colour.at_mut(u, v) = *guidance.colour.at(u, v);
-        *out.depth_m.at_mut(u, v) = *guidance.depth_m.at(u, v);
+    let colour = out.colour.data.iter_mut().zip(&guidance.colour.data);
+    let depth = out.depth_m.data.iter_mut().zip(&guidance.depth_m.data);
+    for ((c, d), _) in colour.zip(depth).zip(missing).filter(|(_, m)| !**m) {
+        *c.0 = *c.1;
+        *d.0 = *d.1;
     }
 }
 

@@ -265,17 +265,29 @@ fn load_seed(args: &GenerateArgs) -> Result<Seed> {
     })
 }
 
-/// The cameras of the run: index 0 is the seed, 1..=steps are generated.
+/// Side of the square grid of the grid trajectories (zig-zag, boustrophedon, greedy): `--grid`,
+/// enlarged when it has fewer cells than poses.
+fn grid_side(args: &GenerateArgs) -> usize {
+    args.grid.max(((args.steps + 1) as f64).sqrt().ceil() as usize)
+}
+
+/// Distance between neighbouring poses: `--step`, else the seed's preset.
+fn grid_step(args: &GenerateArgs, seed: &Seed) -> f32 {
+    args.step.unwrap_or(seed.preset.step_m)
+}
+
+/// The cameras of the run: index 0 is the seed, 1..=steps are generated (greedy: only the seed;
+/// the rest are chosen while generating).
 fn build_trajectory(args: &GenerateArgs, seed: &Seed) -> Result<Vec<Camera>> {
     let s = &seed.camera.world_from_camera;
-    let step = args.step.unwrap_or(seed.preset.step_m);
+    let step = grid_step(args, seed);
     if !(step.is_finite() && step > 0.0) {
         bail!("--step {step} must be a positive distance in metres");
     }
     let n = args.steps + 1;
     let poses: Vec<Rigid3> = match args.trajectory {
         TrajectoryKind::Zigzag | TrajectoryKind::Boustrophedon => {
-            let side = args.grid.max((n as f64).sqrt().ceil() as usize);
+            let side = grid_side(args);
             let cells = if args.trajectory == TrajectoryKind::Zigzag {
                 trajectory::zigzag_cells(side, side)
             } else {
@@ -284,14 +296,7 @@ fn build_trajectory(args: &GenerateArgs, seed: &Seed) -> Result<Vec<Camera>> {
             let cells: Vec<_> = cells.into_iter().take(n).collect();
             trajectory::grid_poses(s, &cells, step)
         }
-        TrajectoryKind::Greedy => {
-            // poses are chosen while generating; only the seed is known up front
-            let side = args.grid.max((n as f64).sqrt().ceil() as usize);
-            if side * side < n {
-                bail!("--grid {side} has too few cells for {} steps", args.steps);
-            }
-            return Ok(vec![seed.camera]);
-        }
+        TrajectoryKind::Greedy => return Ok(vec![seed.camera]),
         TrajectoryKind::Line => trajectory::line_poses(s, n, step),
         TrajectoryKind::Circle => trajectory::circle_poses(s, n, args.radius),
         TrajectoryKind::Spiral => trajectory::spiral_poses(s, n, step, args.radius),
@@ -497,9 +502,12 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
     }
     let done = gen.keyframes.len();
     let (total, mut greedy) = if args.trajectory == TrajectoryKind::Greedy {
-        let step = args.step.unwrap_or(seed.preset.step_m);
-        let side = args.grid.max(((args.steps + 1) as f64).sqrt().ceil() as usize);
-        let planner = crate::greedy::GreedyPlanner::new(&cameras[0], step, side, gen.keyframes.cameras())?;
+        let planner = crate::greedy::GreedyPlanner::new(
+            &cameras[0],
+            grid_step(args, &seed),
+            grid_side(args),
+            gen.keyframes.cameras(),
+        )?;
         (args.steps + 1, Some(planner))
     } else {
         (cameras.len(), None)
@@ -588,12 +596,11 @@ fn finish_outputs<R: Refiner>(
     if !args.no_video {
         write_flythrough(dir, cams.len())?;
     }
-    let cams_owned = cams.to_vec();
-    if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams_owned[0], 1280, 800) {
+    if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams[0], 1280, 800) {
         let img = crate::overview::render_overview(&gen.map, &cam, near, far);
         sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
     }
-    sgam_io::write_rgb_png(&dir.join("strip.png"), &crate::overview::frame_strip(dir, cams_owned.len(), 6)?)?;
+    sgam_io::write_rgb_png(&dir.join("strip.png"), &crate::overview::frame_strip(dir, cams.len(), 6)?)?;
     let col = |f: fn(&StepTimings) -> f64| median(&timings.iter().map(f).collect::<Vec<_>>());
     let summary = serde_json::json!({
         "args": args,
