@@ -1,17 +1,8 @@
 //! CLI wiring: training, the model refiner in generation, fusion errors.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use std::process::{Command, Output};
-
-fn sgam(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sgam")).args(args).output().expect("run sgam")
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = sgam(args);
-    assert!(out.status.success(), "sgam {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
+mod common;
+use common::{ok, sgam};
 
 #[test]
 fn tiny_training_run_resumes_and_its_model_drives_generation() {

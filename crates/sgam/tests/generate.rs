@@ -2,19 +2,11 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::path::Path;
-use std::process::Command;
+mod common;
+use common::{ok, sgam};
 
 use sgam_core::{Camera, Vec3};
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
-
-fn sgam(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_sgam")).args(args).output().expect("run sgam")
-}
-
-fn ok(args: &[&str]) {
-    let out = sgam(args);
-    assert!(out.status.success(), "sgam {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-}
 
 fn seed_camera(res: u32) -> Camera {
     blender_camera(Vec3::new(-20.0, -20.0, 0.0), sgam_synth::CAMERA_PITCH_RAD, 0.0, dataset_intrinsics(res))

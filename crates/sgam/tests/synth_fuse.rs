@@ -2,15 +2,10 @@
 //! reader, `sgam fuse` turns it into a mesh, and the mesh sits where the scene description says.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use std::process::Command;
+mod common;
+use common::ok;
 
 use sgam_core::Vec3;
-
-fn ok(args: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_sgam")).args(args).output().expect("run sgam");
-    assert!(out.status.success(), "sgam {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
 
 #[test]
 fn synth_dataset_round_trips_through_reader_and_fusion() {
