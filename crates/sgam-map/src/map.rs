@@ -13,6 +13,9 @@ use crate::TsdfConfig;
 /// box without visiting the whole map.
 pub(crate) const SUPER_SIZE: i32 = 8;
 
+/// Voxel rows (of 8 along x) per block.
+pub(crate) const ROWS: usize = (BLOCK_SIZE * BLOCK_SIZE) as usize;
+
 /// What one [`TsdfMap::integrate`] call did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct IntegrateStats {
@@ -46,6 +49,9 @@ pub struct TsdfMap {
     pub(crate) is_dirty: Vec<bool>,
     /// Per block: [`HAS_POSITIVE`] / [`HAS_NEGATIVE`] over its observed voxels.
     pub(crate) sign_flags: Vec<u8>,
+    /// Per block, per voxel row (`y + 8 z`): the same summary over the row, so that an
+    /// integration which leaves a row alone need not read it to refresh `sign_flags`.
+    pub(crate) row_flags: Vec<[u8; ROWS]>,
     /// Super-block key -> ids of its blocks (ascending).
     pub(crate) super_index: FxHashMap<IVec3, Vec<u32>>,
     /// Weight threshold the cached block meshes were built with.
@@ -65,6 +71,7 @@ impl TsdfMap {
             dirty: Vec::new(),
             is_dirty: Vec::new(),
             sign_flags: Vec::new(),
+            row_flags: Vec::new(),
             super_index: FxHashMap::default(),
             mesh_weight_threshold: None,
         }
@@ -124,6 +131,7 @@ impl TsdfMap {
         self.meshes.push(BlockMesh::default());
         self.is_dirty.push(false);
         self.sign_flags.push(0);
+        self.row_flags.push([0; ROWS]);
         let sk = IVec3::new(key.x.div_euclid(SUPER_SIZE), key.y.div_euclid(SUPER_SIZE), key.z.div_euclid(SUPER_SIZE));
         self.super_index.entry(sk).or_default().push(id);
         (id, true)
@@ -131,7 +139,9 @@ impl TsdfMap {
 
     /// Recomputes the sign summary of block `id` from its voxels.
     pub(crate) fn refresh_sign_flags(&mut self, id: u32) {
-        self.sign_flags[id as usize] = sign_flags_of(&self.blocks[id as usize]);
+        let rows = row_flags_of(&self.blocks[id as usize]);
+        self.sign_flags[id as usize] = rows.iter().fold(0, |a, &r| a | r);
+        self.row_flags[id as usize] = rows;
     }
 
     pub(crate) fn mark_dirty(&mut self, id: u32) {
@@ -166,7 +176,9 @@ impl TsdfMap {
         if !camera.world_from_camera.is_finite() || !positive(cfg.voxel_size_m) || !positive(cfg.trunc_voxels) {
             return stats;
         }
-        let (keys, pixels_used) = touched_blocks(frame, camera, &cfg);
+        let depth = usable_depth(frame, &cfg);
+        let (w, h) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
+        let (keys, pixels_used) = touched_blocks(&depth, w, h, camera, &cfg);
         stats.pixels_used = pixels_used;
         stats.blocks_touched = keys.len();
         let mut ids = Vec::with_capacity(keys.len());
@@ -177,15 +189,17 @@ impl TsdfMap {
         }
         ids.sort_unstable();
         let camera_from_world = camera.world_from_camera.inverse();
-        let ctx = UpdateContext::new(frame, camera, &camera_from_world, &cfg);
+        let ctx = UpdateContext::new(depth, frame, camera, &camera_from_world, &cfg);
         let updated: Vec<(u32, usize, u8)> = {
             let blocks = disjoint_mut(&mut self.blocks, &ids);
+            let rows = disjoint_mut(&mut self.row_flags, &ids);
             let keys_of = &self.keys;
             blocks
                 .into_par_iter()
+                .zip(rows)
                 .zip(ids.par_iter())
-                .map(|(block, &id)| {
-                    let (n, flags) = ctx.update_block(block, keys_of[id as usize]);
+                .map(|((block, rows), &id)| {
+                    let (n, flags) = ctx.update_block(block, rows, keys_of[id as usize]);
                     (id, n, flags)
                 })
                 .collect()
@@ -203,7 +217,7 @@ impl TsdfMap {
 }
 
 /// Mutable references to `blocks[ids[i]]` for sorted, unique `ids`, in O(ids) time.
-fn disjoint_mut<'a>(blocks: &'a mut [Block], ids: &[u32]) -> Vec<&'a mut Block> {
+fn disjoint_mut<'a, T>(blocks: &'a mut [T], ids: &[u32]) -> Vec<&'a mut T> {
     let mut out = Vec::with_capacity(ids.len());
     let mut rest = blocks;
     let mut offset = 0usize;
@@ -219,43 +233,95 @@ fn disjoint_mut<'a>(blocks: &'a mut [Block], ids: &[u32]) -> Vec<&'a mut Block> 
     out
 }
 
+/// The frame's depth with NaN wherever it is unusable (invalid or outside the depth range).
+fn usable_depth(frame: &RgbdFrame, cfg: &TsdfConfig) -> Vec<f32> {
+    let (lo, hi) = (cfg.depth_min_m, cfg.depth_max_m);
+    frame.depth_m.data.iter().map(|&d| if is_valid_depth(d) && d >= lo && d <= hi { d } else { f32::NAN }).collect()
+}
+
+/// Usable-depth summary of a pixel rectangle.
+#[derive(Clone, Copy)]
+struct TileStats {
+    min: f32,
+    max: f32,
+    count: usize,
+}
+
+impl TileStats {
+    const EMPTY: TileStats = TileStats { min: f32::INFINITY, max: f32::NEG_INFINITY, count: 0 };
+
+    /// Over `depth[v * w + u]` for `u in u0..u1`, `v in v0..v1` (NaN = unusable).
+    fn of(depth: &[f32], w: usize, (u0, u1): (usize, usize), (v0, v1): (usize, usize)) -> Self {
+        // Eight lanes, and `if d < m { d } else { m }`, which keeps `m` when `d` is NaN: one
+        // `minps` per lane group (vectorised), where `f32::min` would add a NaN blend.
+        const L: usize = 8;
+        let (mut mn, mut mx, mut n) = ([f32::INFINITY; L], [f32::NEG_INFINITY; L], [0u32; L]);
+        for v in v0..v1 {
+            let row = &depth[v * w + u0..v * w + u1];
+            let mut chunks = row.chunks_exact(L);
+            for c in &mut chunks {
+                for i in 0..L {
+                    let d = c[i];
+                    mn[i] = if d < mn[i] { d } else { mn[i] };
+                    mx[i] = if d > mx[i] { d } else { mx[i] };
+                    n[i] += (d == d) as u32;
+                }
+            }
+            for (i, &d) in chunks.remainder().iter().enumerate() {
+                mn[i] = if d < mn[i] { d } else { mn[i] };
+                mx[i] = if d > mx[i] { d } else { mx[i] };
+                n[i] += (d == d) as u32;
+            }
+        }
+        Self {
+            min: mn.iter().fold(f32::INFINITY, |a, &b| a.min(b)),
+            max: mx.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b)),
+            count: n.iter().map(|&c| c as usize).sum(),
+        }
+    }
+
+    fn merge(self, o: Self) -> Self {
+        Self { min: self.min.min(o.min), max: self.max.max(o.max), count: self.count + o.count }
+    }
+}
+
 /// The block keys crossed by every usable pixel's truncation band, sorted, plus the number of
-/// usable pixels.
+/// usable pixels. `depth` is `w x h`, NaN where unusable ([`usable_depth`]).
 ///
-/// Pixels are handled in `s x s` tiles. In a tile whose usable depths span at most the
-/// truncation distance, every pixel's band segment lies inside the "tube" bounded by the four
-/// corner pixels' rays between planar depths `min - trunc` and `max + trunc`; while the tube's
-/// cross-section is at most half a block (`s` is chosen so), the tube usually lies in few
-/// blocks. The tube is the convex hull of its four edges, so when the cells the edges cross form
-/// a box, exactly those cells meet the tube; otherwise the bounding box of those cells is
-/// inserted (a superset). Either way every block a tile pixel's band crosses is allocated.
-/// Other tiles (depth edges) walk every pixel's own segment.
-fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
-    let (w, h) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
+/// Pixels are handled in tiles. In a tile whose usable depths span at most the truncation
+/// distance, every pixel's band segment lies inside the "tube" bounded by the four corner
+/// pixels' rays between planar depths `min - trunc` and `max + trunc`; while the tube's
+/// cross-section is at most half a block, the tube usually lies in few blocks. The tube is the
+/// convex hull of its four edges, so when the cells the edges cross form a box, exactly those
+/// cells meet the tube; otherwise the bounding box of those cells is inserted (a superset).
+/// Either way every block a tile pixel's band crosses is allocated. Tiles are `2s x 2s` pixels
+/// when their own far end allows it (near surfaces), else `s x s` with `s` chosen for the
+/// depth range's far end; other tiles (depth edges) walk every pixel's own segment.
+fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let trunc = cfg.trunc_m();
     let inv_block = 1.0 / cfg.block_size_m();
     let k = camera.intrinsics;
     let wfc: Rigid3 = camera.world_from_camera;
-    let depth = &frame.depth_m.data;
-    if depth.len() < w * h {
+    if depth.len() < w * h || w == 0 || h == 0 {
         return (Vec::new(), 0);
     }
     let origin = wfc.translation * inv_block;
     let r = wfc.rotation;
     let (inv_fx, inv_fy) = (1.0 / k.fx, 1.0 / k.fy);
-    let (d_lo, d_hi) = (cfg.depth_min_m, cfg.depth_max_m);
-    // Largest tile whose corner rays stay within half a block of each other at the far end.
-    let spread_m = |s: usize| (s - 1) as f32 * (d_hi + trunc) / k.fx.min(k.fy);
-    let tile = [8usize, 4, 2].into_iter().find(|&s| spread_m(s) <= 0.5 * cfg.block_size_m()).unwrap_or(1);
+    let half_block = 0.5 * cfg.block_size_m();
+    // Spread of an `s`-pixel tile's corner rays at planar depth `far`.
+    let spread_m = |s: usize, far: f32| (s - 1) as f32 * far / k.fx.min(k.fy);
+    let far_end = cfg.depth_max_m + trunc;
+    let tile = [8usize, 4, 2].into_iter().find(|&s| spread_m(s, far_end) <= half_block).unwrap_or(1);
+    let big = 2 * tile;
     // World ray (camera z = 1, block units) of pixel (u, v).
     let ray =
         |u: f32, v: f32| (r.x_axis * ((u - k.cx) * inv_fx) + r.y_axis * ((v - k.cy) * inv_fy) + r.z_axis) * inv_block;
-    let usable = |d: f32| is_valid_depth(d) && d >= d_lo && d <= d_hi;
-    let (set, used) = (0..h.div_ceil(tile))
+    let (set, used) = (0..h.div_ceil(big))
         .into_par_iter()
         .fold(
             || (FxHashSet::<IVec3>::default(), 0usize),
-            |(mut set, mut used), tile_row| {
+            |(mut set, mut used), big_row| {
                 // Direct-mapped cache of recently inserted cells: neighbouring pixels cross the
                 // same blocks, so most cells are rejected with one comparison.
                 let mut recent = [IVec3::MAX; 64];
@@ -269,79 +335,103 @@ fn touched_blocks(frame: &RgbdFrame, camera: &Camera, cfg: &TsdfConfig) -> (Vec<
                         set.insert(cell);
                     }
                 };
-                let (v0, v1) = (tile_row * tile, ((tile_row + 1) * tile).min(h));
-                for u0 in (0..w).step_by(tile) {
-                    let u1 = (u0 + tile).min(w);
-                    let (mut d_min, mut d_max, mut n) = (f32::INFINITY, 0.0f32, 0usize);
-                    for v in v0..v1 {
-                        for &d in &depth[v * w + u0..v * w + u1] {
-                            if usable(d) {
-                                d_min = d_min.min(d);
-                                d_max = d_max.max(d);
-                                n += 1;
+                // Covers the tube of the pixel rectangle's corner rays between planar depths
+                // `z0 .. z1`; false when it would take more than 64 cells (walk pixels instead).
+                let cover_tube = |(u0, u1): (usize, usize),
+                                  (v0, v1): (usize, usize),
+                                  z0: f32,
+                                  z1: f32,
+                                  insert: &mut dyn FnMut(IVec3)| {
+                    let (ua, ub, va, vb) = (u0 as f32, (u1 - 1) as f32, v0 as f32, (v1 - 1) as f32);
+                    let mut edge_cells: [IVec3; 32] = [IVec3::ZERO; 32];
+                    let mut n_cells = 0usize;
+                    let mut overflow = false;
+                    let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
+                    for (u, v) in [(ua, va), (ub, va), (ua, vb), (ub, vb)] {
+                        let dir = ray(u, v);
+                        walk_cells(origin + dir * z0, origin + dir * z1, |c| {
+                            lo = lo.min(c);
+                            hi = hi.max(c);
+                            if !edge_cells[..n_cells].contains(&c) {
+                                if n_cells < edge_cells.len() {
+                                    edge_cells[n_cells] = c;
+                                    n_cells += 1;
+                                } else {
+                                    overflow = true;
+                                }
+                            }
+                        });
+                    }
+                    if n_cells == 0 {
+                        // non-finite rays: nothing to cover, nothing the pixel walk would find
+                        return true;
+                    }
+                    // The tube is the convex hull of its edges. When the cells the edges cross
+                    // form a box, that box (convex) holds the whole tube: those cells are exactly
+                    // the blocks it meets. Otherwise insert the cells' bounding box, which also
+                    // holds the tube.
+                    let extent = hi - lo + IVec3::ONE;
+                    let box_cells = (extent.x * extent.y * extent.z) as usize;
+                    if !overflow && n_cells == box_cells {
+                        edge_cells[..n_cells].iter().for_each(|c| insert(*c));
+                        true
+                    } else if box_cells <= 64 {
+                        for z in lo.z..=hi.z {
+                            for y in lo.y..=hi.y {
+                                for x in lo.x..=hi.x {
+                                    insert(IVec3::new(x, y, z));
+                                }
+                            }
+                        }
+                        true
+                    } else {
+                        false
+                    }
+                };
+                let bv0 = big_row * big;
+                for bu0 in (0..w).step_by(big) {
+                    // the (up to) four s x s tiles of this 2s x 2s tile
+                    let mut subs = [((0, 0), (0, 0), TileStats::EMPTY); 4];
+                    let mut n_subs = 0;
+                    for v0 in [bv0, bv0 + tile] {
+                        for u0 in [bu0, bu0 + tile] {
+                            if u0 < w && v0 < h {
+                                let (us, vs) = ((u0, (u0 + tile).min(w)), (v0, (v0 + tile).min(h)));
+                                subs[n_subs] = (us, vs, TileStats::of(depth, w, us, vs));
+                                n_subs += 1;
                             }
                         }
                     }
-                    if n == 0 {
+                    let all = subs[..n_subs].iter().fold(TileStats::EMPTY, |a, s| a.merge(s.2));
+                    if all.count == 0 {
                         continue;
                     }
-                    used += n;
-                    // smooth tiles: cover the tube of their 4 corner rays; otherwise (or when the
-                    // tube's cells are too many) walk every pixel's ray
-                    let mut covered = false;
-                    if tile > 1 && d_max - d_min <= trunc {
-                        let (z0, z1) = ((d_min - trunc).max(0.0), d_max + trunc);
-                        let (ua, ub, va, vb) = (u0 as f32, (u1 - 1) as f32, v0 as f32, (v1 - 1) as f32);
-                        let mut edge_cells: [IVec3; 32] = [IVec3::ZERO; 32];
-                        let mut n_cells = 0usize;
-                        let mut overflow = false;
-                        let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
-                        for (u, v) in [(ua, va), (ub, va), (ua, vb), (ub, vb)] {
-                            let dir = ray(u, v);
-                            walk_cells(origin + dir * z0, origin + dir * z1, |c| {
-                                lo = lo.min(c);
-                                hi = hi.max(c);
-                                if !edge_cells[..n_cells].contains(&c) {
-                                    if n_cells < edge_cells.len() {
-                                        edge_cells[n_cells] = c;
-                                        n_cells += 1;
-                                    } else {
-                                        overflow = true;
-                                    }
-                                }
-                            });
-                        }
-                        // The tube is the convex hull of its edges. When the cells the edges
-                        // cross form a box, that box (convex) holds the whole tube: those cells
-                        // are exactly the blocks it meets. Otherwise insert the cells' bounding
-                        // box, which also holds the tube.
-                        let extent = hi - lo + IVec3::ONE;
-                        let box_cells = (extent.x * extent.y * extent.z) as usize;
-                        if !overflow && n_cells == box_cells {
-                            edge_cells[..n_cells].iter().for_each(|c| insert(*c));
-                            covered = true;
-                        } else if box_cells <= 64 {
-                            for z in lo.z..=hi.z {
-                                for y in lo.y..=hi.y {
-                                    for x in lo.x..=hi.x {
-                                        insert(IVec3::new(x, y, z));
-                                    }
-                                }
-                            }
-                            covered = true;
-                        }
+                    used += all.count;
+                    let (us, vs) = ((bu0, (bu0 + big).min(w)), (bv0, (bv0 + big).min(h)));
+                    if tile > 1
+                        && all.max - all.min <= trunc
+                        && spread_m(big, all.max + trunc) <= half_block
+                        && cover_tube(us, vs, (all.min - trunc).max(0.0), all.max + trunc, &mut insert)
+                    {
+                        continue;
                     }
-                    if !covered {
-                        for v in v0..v1 {
-                            for u in u0..u1 {
-                                let d = depth[v * w + u];
-                                if usable(d) {
-                                    let dir = ray(u as f32, v as f32);
-                                    walk_cells(
-                                        origin + dir * (d - trunc).max(0.0),
-                                        origin + dir * (d + trunc),
-                                        &mut insert,
-                                    );
+                    for &(us, vs, t) in &subs[..n_subs] {
+                        if t.count == 0 {
+                            continue;
+                        }
+                        let smooth = tile > 1 && t.max - t.min <= trunc;
+                        if !(smooth && cover_tube(us, vs, (t.min - trunc).max(0.0), t.max + trunc, &mut insert)) {
+                            for v in vs.0..vs.1 {
+                                for u in us.0..us.1 {
+                                    let d = depth[v * w + u];
+                                    if d == d {
+                                        let dir = ray(u as f32, v as f32);
+                                        walk_cells(
+                                            origin + dir * (d - trunc).max(0.0),
+                                            origin + dir * (d + trunc),
+                                            &mut insert,
+                                        );
+                                    }
                                 }
                             }
                         }
@@ -446,15 +536,15 @@ pub(crate) const HAS_POSITIVE: u8 = 1;
 pub(crate) const HAS_NEGATIVE: u8 = 2;
 
 impl<'a> UpdateContext<'a> {
-    fn new(frame: &'a RgbdFrame, camera: &'a Camera, camera_from_world: &Rigid3, cfg: &TsdfConfig) -> Self {
+    /// `depth`: the frame's [`usable_depth`].
+    fn new(
+        depth: Vec<f32>,
+        frame: &'a RgbdFrame,
+        camera: &'a Camera,
+        camera_from_world: &Rigid3,
+        cfg: &TsdfConfig,
+    ) -> Self {
         let k = camera.intrinsics;
-        let (d_lo, d_hi) = (cfg.depth_min_m, cfg.depth_max_m);
-        let depth = frame
-            .depth_m
-            .data
-            .iter()
-            .map(|&d| if is_valid_depth(d) && d >= d_lo && d <= d_hi { d } else { f32::NAN })
-            .collect();
         let (width, height) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
         let colour_ok = frame.colour.data.len() == width * height;
         Self {
@@ -473,14 +563,17 @@ impl<'a> UpdateContext<'a> {
         }
     }
 
-    /// Updates one block; returns the number of voxels changed and the block's sign summary.
+    /// Updates one block; returns the number of voxels changed and the block's sign summary
+    /// (`rows` holds the per-row summaries and is kept up to date).
     ///
     /// Voxel centres along a block row are an arithmetic progression in camera space, so each
-    /// row is projected in one branch-free pass over its 8 voxels (vectorised by the compiler);
-    /// the update itself is branch-free too (voxels that take no observation are rewritten with
+    /// row is projected in one branch-free pass over its 8 voxels (vectorised by the compiler).
+    /// A row none of whose voxels takes the observation (behind the surface, outside the image)
+    /// is not touched at all: no voxel memory is read or written, its summary is reused. In the
+    /// other rows the update is branch-free (voxels that take no observation are rewritten with
     /// their own values), as surfaces make the in-band test unpredictable.
     #[inline(never)]
-    fn update_block(&self, block: &mut Block, key: IVec3) -> (usize, u8) {
+    fn update_block(&self, block: &mut Block, rows: &mut [u8; ROWS], key: IVec3) -> (usize, u8) {
         const N: usize = BLOCK_SIZE as usize;
         let vs = self.voxel_size_m;
         let origin = (key * BLOCK_SIZE).as_vec3() + Vec3::splat(0.5);
@@ -505,9 +598,9 @@ impl<'a> UpdateContext<'a> {
         let small_image = depth.len() < 1 << 22;
         let (u_end, v_end) = (wf - 0.5, hf - 0.5);
         let mut n = 0usize;
-        let (mut any_pos, mut any_neg) = (false, false);
+        let mut flags = 0u8;
         if depth.is_empty() {
-            return (0, sign_flags_of(block));
+            return (0, rows.iter().fold(0, |a, &r| a | r));
         }
         for (row_index, row) in block.voxels.chunks_exact_mut(N).enumerate() {
             let (y, z) = (row_index % N, row_index / N);
@@ -551,12 +644,23 @@ impl<'a> UpdateContext<'a> {
                     zc[i] = pz;
                 }
             }
+            let mut sdf = [0.0f32; N];
+            let mut take = [false; N];
+            for i in 0..N {
+                let at = pix[i].min(depth.len() - 1);
+                sdf[i] = depth[at] - zc[i];
+                // NaN (unusable pixel) fails this test.
+                take[i] = inside[i] & (sdf[i] >= neg_trunc);
+            }
+            if !take.iter().any(|&t| t) {
+                flags |= rows[row_index];
+                continue;
+            }
+            let (mut any_pos, mut any_neg) = (false, false);
             for i in 0..N {
                 let vox = &mut row[i];
                 let at = pix[i].min(depth.len() - 1);
-                let sdf = depth[at] - zc[i];
-                // NaN (unusable pixel) fails this test.
-                let take = inside[i] && sdf >= neg_trunc;
+                let (sdf, take) = (sdf[i], take[i]);
                 let obs = (sdf * inv_trunc).min(1.0);
                 let wp = vox.weight.min(cap_prev);
                 let inv = 1.0 / (wp + 1.0);
@@ -575,20 +679,24 @@ impl<'a> UpdateContext<'a> {
                 any_neg |= weight > 0.0 && tsdf < 0.0;
                 any_pos |= weight > 0.0 && tsdf >= 0.0;
             }
+            rows[row_index] = (any_pos as u8 * HAS_POSITIVE) | (any_neg as u8 * HAS_NEGATIVE);
+            flags |= rows[row_index];
         }
-        (n, (any_pos as u8 * HAS_POSITIVE) | (any_neg as u8 * HAS_NEGATIVE))
+        (n, flags)
     }
 }
 
-/// The sign summary ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's observed voxels.
-fn sign_flags_of(block: &Block) -> u8 {
-    let mut flags = 0u8;
-    for v in block.voxels.iter() {
-        if v.weight > 0.0 {
-            flags |= if v.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
+/// The sign summaries ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's voxel rows.
+fn row_flags_of(block: &Block) -> [u8; ROWS] {
+    let mut rows = [0u8; ROWS];
+    for (flags, row) in rows.iter_mut().zip(block.voxels.chunks_exact(BLOCK_SIZE as usize)) {
+        for v in row {
+            if v.weight > 0.0 {
+                *flags |= if v.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
+            }
         }
     }
-    flags
+    rows
 }
 
 #[cfg(test)]
@@ -651,7 +759,7 @@ mod tests {
                 depth_max_m: depth_max,
                 weight_cap: None,
             };
-            let (keys, used) = touched_blocks(&frame, &cam, &cfg);
+            let (keys, used) = touched_blocks(&usable_depth(&frame, &cfg), w as usize, h as usize, &cam, &cfg);
             let got: FxHashSet<IVec3> = keys.iter().copied().collect();
             let trunc = cfg.trunc_m();
             let inv_block = 1.0 / cfg.block_size_m();

@@ -405,3 +405,21 @@ fn warmup_end_initialises_the_codebook_from_encoder_features() {
         after.len()
     );
 }
+
+#[test]
+fn learning_rate_is_constant_then_decays_along_a_cosine_to_the_floor() {
+    let mut tc = TrainConfig::new(Stage::One, 1000);
+    tc.lr = 1e-3;
+    assert_eq!(tc.lr_at(0), 1e-3);
+    assert_eq!(tc.lr_at(999), 1e-3, "no decay unless asked");
+    tc.lr_decay_from = Some(600);
+    assert_eq!(tc.lr_at(599), 1e-3);
+    assert!((tc.lr_at(600) - 1e-3).abs() < 1e-12);
+    let mid = tc.lr_at(800);
+    let expected_mid = 1e-3 * (sgam_model::train::LR_FLOOR + (1.0 - sgam_model::train::LR_FLOOR) * 0.5);
+    assert!((mid - expected_mid).abs() < 1e-12, "{mid} vs {expected_mid}");
+    assert!((tc.lr_at(1000) - 1e-3 * sgam_model::train::LR_FLOOR).abs() < 1e-12);
+    assert!((tc.lr_at(5000) - 1e-3 * sgam_model::train::LR_FLOOR).abs() < 1e-12, "clamped past the end");
+    let lrs: Vec<f64> = (600..=1000).map(|s| tc.lr_at(s)).collect();
+    assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "decay is monotone");
+}
