@@ -264,13 +264,13 @@ impl TileStats {
                     let d = c[i];
                     mn[i] = if d < mn[i] { d } else { mn[i] };
                     mx[i] = if d > mx[i] { d } else { mx[i] };
-                    n[i] += (d == d) as u32;
+                    n[i] += !d.is_nan() as u32;
                 }
             }
             for (i, &d) in chunks.remainder().iter().enumerate() {
                 mn[i] = if d < mn[i] { d } else { mn[i] };
                 mx[i] = if d > mx[i] { d } else { mx[i] };
-                n[i] += (d == d) as u32;
+                n[i] += !d.is_nan() as u32;
             }
         }
         Self {
@@ -424,7 +424,7 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                             for v in vs.0..vs.1 {
                                 for u in us.0..us.1 {
                                     let d = depth[v * w + u];
-                                    if d == d {
+                                    if !d.is_nan() {
                                         let dir = ray(u as f32, v as f32);
                                         walk_cells(
                                             origin + dir * (d - trunc).max(0.0),
