@@ -16,17 +16,23 @@ if ! python3 -c "import open3d" 2>/dev/null; then
   pip install -q open3d-cpu
 fi
 cargo build --release -q -p sgam
+# Ours twice per round: frames read one at a time (the default) and --preload (frames decoded
+# up front, as the peer script does: the like-for-like timing).
 for run in 1 2 3; do
   ./target/release/sgam fuse "$SEQ" --voxel-size 0.02 --trunc-voxels 4 --depth-max 4.0 \
       --out "$OUT/sgam.ply" --stats-json "$OUT/sgam-$run.json" 2>/dev/null
+  ./target/release/sgam fuse "$SEQ" --voxel-size 0.02 --trunc-voxels 4 --depth-max 4.0 --preload \
+      --out "$OUT/sgam-preload.ply" --stats-json "$OUT/sgam-preload-$run.json" 2>/dev/null
   python3 "$PEER" "$SEQ" --voxel 0.02 --trunc-mult 4 --depth-max 4.0 --out "$OUT/open3d.ply" > "$OUT/open3d-$run.json"
 done
 python3 - "$OUT" <<'PY'
 import json, sys, statistics as st
 out = sys.argv[1]
 s = [json.load(open(f"{out}/sgam-{r}.json")) for r in (1, 2, 3)]
+p = [json.load(open(f"{out}/sgam-preload-{r}.json")) for r in (1, 2, 3)]
 o = [json.loads(open(f"{out}/open3d-{r}.json").read().strip().splitlines()[-1]) for r in (1, 2, 3)]
 ours = st.median(x["integrate_plus_mesh_ms_per_frame"] for x in s)
+ours_pre = st.median(x["integrate_plus_mesh_ms_per_frame"] for x in p)
 peer = st.median(x["integrate_plus_mesh_ms_per_frame"] for x in o)
 print(json.dumps({
   "frames": s[0]["frames"],
@@ -36,6 +42,8 @@ print(json.dumps({
   "open3d_integrate_ms_per_frame": st.median(x["integrate_ms_per_frame"] for x in o),
   "open3d_integrate_plus_mesh_ms_per_frame": peer,
   "ratio_sgam_over_open3d": ours / peer,
+  "sgam_preload_integrate_plus_mesh_ms_per_frame": ours_pre,
+  "ratio_sgam_preload_over_open3d": ours_pre / peer,
   "sgam_vertices": s[0]["vertices"], "open3d_vertices": o[0]["vertices"],
   "vertex_ratio": s[0]["vertices"] / o[0]["vertices"],
 }))
