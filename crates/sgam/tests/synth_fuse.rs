@@ -64,4 +64,12 @@ fn synth_dataset_round_trips_through_reader_and_fusion() {
     assert!(frac > 0.99, "{:.1}% of object vertices lie on a described object", 100.0 * frac);
     let ground = mesh.positions.iter().filter(|p| (p.z - scene.ground_z_m).abs() < 0.1).count();
     assert!(ground > 1000, "ground plane missing ({ground} vertices)");
+    // --preload (frames decoded up front, in parallel) fuses the same frames in the same order
+    let preloaded = tmp.path().join("m-preload.ply");
+    let args = ["--voxel-size", "0.1", "--trunc-voxels", "4", "--depth-max", "20", "--preload", "--out"];
+    let mut cmd = vec!["fuse", scene_dir.to_str().unwrap()];
+    cmd.extend(args);
+    cmd.push(preloaded.to_str().unwrap());
+    ok(&cmd);
+    assert_eq!(std::fs::read(&preloaded).unwrap(), std::fs::read(&mesh_path).unwrap(), "--preload changed the mesh");
 }
