@@ -140,7 +140,7 @@ impl TsdfMap {
     /// Recomputes the sign summary of block `id` from its voxels.
     pub(crate) fn refresh_sign_flags(&mut self, id: u32) {
         let rows = row_flags_of(&self.blocks[id as usize]);
-        self.sign_flags[id as usize] = rows.iter().fold(0, |a, &r| a | r);
+        self.sign_flags[id as usize] = block_flags(&rows);
         self.row_flags[id as usize] = rows;
     }
 
@@ -256,21 +256,21 @@ impl TileStats {
         // `minps` per lane group (vectorised), where `f32::min` would add a NaN blend.
         const L: usize = 8;
         let (mut mn, mut mx, mut n) = ([f32::INFINITY; L], [f32::NEG_INFINITY; L], [0u32; L]);
+        let mut add = |i: usize, d: f32| {
+            mn[i] = if d < mn[i] { d } else { mn[i] };
+            mx[i] = if d > mx[i] { d } else { mx[i] };
+            n[i] += !d.is_nan() as u32;
+        };
         for v in v0..v1 {
             let row = &depth[v * w + u0..v * w + u1];
             let mut chunks = row.chunks_exact(L);
             for c in &mut chunks {
-                for i in 0..L {
-                    let d = c[i];
-                    mn[i] = if d < mn[i] { d } else { mn[i] };
-                    mx[i] = if d > mx[i] { d } else { mx[i] };
-                    n[i] += !d.is_nan() as u32;
+                for (i, &d) in c.iter().enumerate() {
+                    add(i, d);
                 }
             }
             for (i, &d) in chunks.remainder().iter().enumerate() {
-                mn[i] = if d < mn[i] { d } else { mn[i] };
-                mx[i] = if d > mx[i] { d } else { mx[i] };
-                n[i] += !d.is_nan() as u32;
+                add(i, d);
             }
         }
         Self {
@@ -600,7 +600,7 @@ impl<'a> UpdateContext<'a> {
         let mut n = 0usize;
         let mut flags = 0u8;
         if depth.is_empty() {
-            return (0, rows.iter().fold(0, |a, &r| a | r));
+            return (0, block_flags(rows));
         }
         for (row_index, row) in block.voxels.chunks_exact_mut(N).enumerate() {
             let (y, z) = (row_index % N, row_index / N);
@@ -684,6 +684,11 @@ impl<'a> UpdateContext<'a> {
         }
         (n, flags)
     }
+}
+
+/// A block's sign summary from its rows' summaries.
+fn block_flags(rows: &[u8; ROWS]) -> u8 {
+    rows.iter().fold(0, |a, &r| a | r)
 }
 
 /// The sign summaries ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's voxel rows.

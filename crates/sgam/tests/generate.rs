@@ -104,6 +104,17 @@ fn files_under(dir: &Path) -> Vec<std::path::PathBuf> {
     out
 }
 
+/// Asserts that two runs wrote the same outputs ([`files_under`]), byte for byte.
+fn assert_same_outputs(a: &Path, b: &Path) {
+    let (fa, fb) = (files_under(a), files_under(b));
+    assert_eq!(fa.len(), fb.len());
+    for (pa, pb) in fa.iter().zip(&fb) {
+        let rel = pa.strip_prefix(a).unwrap();
+        assert_eq!(rel, pb.strip_prefix(b).unwrap());
+        assert!(std::fs::read(pa).unwrap() == std::fs::read(pb).unwrap(), "{} differs after resume", rel.display());
+    }
+}
+
 #[test]
 fn interrupted_then_resumed_run_equals_uninterrupted_run() {
     let tmp = tempfile::tempdir().unwrap();
@@ -124,14 +135,7 @@ fn interrupted_then_resumed_run_equals_uninterrupted_run() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--resume"));
     ok(&["generate", "--resume", b.to_str().unwrap()]);
-    let fa = files_under(&a);
-    let fb = files_under(&b);
-    assert_eq!(fa.len(), fb.len());
-    for (pa, pb) in fa.iter().zip(&fb) {
-        assert_eq!(pa.file_name(), pb.file_name());
-        let same = std::fs::read(pa).unwrap() == std::fs::read(pb).unwrap();
-        assert!(same, "{} differs after resume", pa.file_name().unwrap().to_string_lossy());
-    }
+    assert_same_outputs(&a, &b);
 }
 
 #[test]
@@ -147,12 +151,8 @@ fn resumed_run_with_the_bundled_model_and_sampling_equals_uninterrupted_run() {
     args.extend(common);
     ok(&args);
     ok(&["generate", "--resume", b.to_str().unwrap()]);
-    let fa = files_under(&a);
-    assert!(fa.iter().any(|p| p.ends_with("rgb/00004.png")));
-    for p in fa {
-        let rel = p.strip_prefix(&a).unwrap();
-        assert_eq!(std::fs::read(&p).unwrap(), std::fs::read(b.join(rel)).unwrap(), "{} differs", rel.display());
-    }
+    assert!(files_under(&a).iter().any(|p| p.ends_with("rgb/00004.png")));
+    assert_same_outputs(&a, &b);
 }
 
 #[test]
