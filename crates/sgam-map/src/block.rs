@@ -39,6 +39,20 @@ impl Default for Block {
     }
 }
 
+impl Block {
+    /// Voxel `i` ([`local_index`]).
+    #[inline]
+    pub fn voxel(&self, i: usize) -> Voxel {
+        self.voxels[i]
+    }
+
+    /// Overwrites voxel `i` ([`local_index`]).
+    #[inline]
+    pub fn set_voxel(&mut self, i: usize, v: Voxel) {
+        self.voxels[i] = v;
+    }
+}
+
 /// Index of local voxel `(x, y, z)` inside a block.
 #[inline]
 pub fn local_index(x: i32, y: i32, z: i32) -> usize {

@@ -60,6 +60,29 @@ const CORNER_OFFSET: [usize; 8] = {
 };
 const AXIS_STRIDE: [usize; 3] = [1, GRID, GRID * GRID];
 
+/// Per-thread working memory of [`TsdfMap::mesh_block`], reused across blocks.
+struct MeshScratch {
+    /// TSDF per grid point (only the gathered rows are meaningful).
+    val: Box<[f32; GRID * GRID * GRID]>,
+    /// Vertex index per (grid point, axis) edge; `u32::MAX` = none. All `MAX` between blocks.
+    cache: Box<[u32; GRID * GRID * GRID * 3]>,
+    /// Slots of `cache` set by the current block (reset after it).
+    used: Vec<u16>,
+    /// The block's mesh as it is built.
+    out: BlockMesh,
+}
+
+impl MeshScratch {
+    fn new() -> Self {
+        Self {
+            val: Box::new([f32::NAN; GRID * GRID * GRID]),
+            cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]),
+            used: Vec::new(),
+            out: BlockMesh::default(),
+        }
+    }
+}
+
 impl TsdfMap {
     /// Re-meshes (marching cubes) the blocks whose cells may have changed since the last call:
     /// every dirty block and its seven lower neighbours (`-x`, `-y`, `-z` and diagonals), whose
@@ -96,7 +119,10 @@ impl TsdfMap {
         // once a block's buffers have grown.
         let mut meshes: Vec<BlockMesh> = todo.iter().map(|&id| std::mem::take(&mut self.meshes[id as usize])).collect();
         let this = &*self;
-        meshes.par_iter_mut().zip(todo.par_iter()).for_each(|(m, &id)| this.mesh_block(id, weight_threshold, m));
+        meshes
+            .par_iter_mut()
+            .zip(todo.par_iter())
+            .for_each_init(MeshScratch::new, |scratch, (m, &id)| this.mesh_block(id, weight_threshold, m, scratch));
         for (&id, m) in todo.iter().zip(meshes) {
             self.meshes[id as usize] = m;
         }
@@ -222,16 +248,22 @@ impl TsdfMap {
     }
 
     /// Marching cubes over the 8^3 cells of block `id`, into `mesh` (cleared first).
-    fn mesh_block(&self, id: u32, weight_threshold: f32, mesh: &mut BlockMesh) {
+    ///
+    /// Only the cell rows (8 cells along x) whose four grid rows hold observed voxels of both
+    /// signs, by the per-row sign summaries, are gathered and visited: in a truncation band most
+    /// rows lie wholly in front of or behind the surface.
+    fn mesh_block(&self, id: u32, weight_threshold: f32, mesh: &mut BlockMesh, scratch: &mut MeshScratch) {
         mesh.clear();
         let key = self.keys[id as usize];
         let mut flags = 0u8;
+        let mut ids = [u32::MAX; 8];
         let neighbours: [Option<&Block>; 8] = std::array::from_fn(|o| {
             let o = o as i32;
             let nk = key + IVec3::new(o & 1, (o >> 1) & 1, o >> 2);
             let nid = if o == 0 { Some(id) } else { self.index.get(&nk).copied() };
             nid.map(|i| {
                 flags |= self.sign_flags[i as usize];
+                ids[o as usize] = i;
                 &self.blocks[i as usize]
             })
         });
@@ -239,14 +271,46 @@ impl TsdfMap {
         if flags != HAS_POSITIVE | HAS_NEGATIVE {
             return;
         }
-        // TSDF per grid point, NaN where unobserved or below the weight threshold.
-        let mut val = [f32::NAN; GRID * GRID * GRID];
+        // Sign summary per grid row (y, z): its 8 voxels' row in the block holding it, plus the
+        // row of the +x neighbour holding its last point (a superset of that one voxel).
+        let mut grid_flags = [0u8; GRID * GRID];
+        for z in 0..GRID {
+            for y in 0..GRID {
+                let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
+                let r = y % 8 + 8 * (z % 8);
+                let f = |o: usize| if ids[o] == u32::MAX { 0 } else { self.row_flags[ids[o] as usize][r] };
+                grid_flags[y + GRID * z] = f(oyz) | f(oyz | 1);
+            }
+        }
+        // Cell rows that may hold a crossing, and the grid rows they read.
+        let mut cell_rows = [false; 64];
+        let mut needed = [false; GRID * GRID];
+        let mut any_cell = false;
+        for z in 0..BLOCK_SIZE as usize {
+            for y in 0..BLOCK_SIZE as usize {
+                let rows = [y + GRID * z, y + 1 + GRID * z, y + GRID * (z + 1), y + 1 + GRID * (z + 1)];
+                if rows.iter().fold(0, |a, &r| a | grid_flags[r]) == HAS_POSITIVE | HAS_NEGATIVE {
+                    cell_rows[y + 8 * z] = true;
+                    rows.iter().for_each(|&r| needed[r] = true);
+                    any_cell = true;
+                }
+            }
+        }
+        if !any_cell {
+            return;
+        }
+        // TSDF per needed grid point, NaN where unobserved or below the weight threshold.
+        let val = &mut scratch.val;
         let mut any_inside = false;
         let mut any_outside = false;
         for z in 0..GRID {
             for y in 0..GRID {
-                let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
                 let row = GRID * (y + GRID * z);
+                if !needed[y + GRID * z] {
+                    continue;
+                }
+                val[row..row + GRID].fill(f32::NAN);
+                let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
                 let (ly, lz) = ((y % 8) as i32, (z % 8) as i32);
                 if let Some(b) = neighbours[oyz] {
                     let start = local_index(0, ly, lz);
@@ -281,11 +345,15 @@ impl TsdfMap {
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
-        let mut cache = [u32::MAX; GRID * GRID * GRID * 3];
+        let MeshScratch { cache, used, out, .. } = scratch;
+        out.clear();
         // Per grid row (y, z): bit x set when grid point x is usable / inside.
         let mut valid_rows = [0u16; GRID * GRID];
         let mut neg_rows = [0u16; GRID * GRID];
         for r in 0..GRID * GRID {
+            if !needed[r] {
+                continue;
+            }
             for x in 0..GRID {
                 let t = val[r * GRID + x];
                 valid_rows[r] |= (!t.is_nan() as u16) << x;
@@ -294,6 +362,9 @@ impl TsdfMap {
         }
         for z in 0..BLOCK_SIZE as usize {
             for y in 0..BLOCK_SIZE as usize {
+                if !cell_rows[y + 8 * z] {
+                    continue;
+                }
                 let rows = [y + GRID * z, y + 1 + GRID * z, y + GRID * (z + 1), y + 1 + GRID * (z + 1)];
                 let vm = rows.iter().fold(0x1FFu16, |m, &r| m & valid_rows[r]);
                 let n = rows.map(|r| neg_rows[r]);
@@ -318,7 +389,8 @@ impl TsdfMap {
                             let gi = base + CORNER_OFFSET[edge_start(e)];
                             let slot = gi * 3 + axis;
                             if cache[slot] == u32::MAX {
-                                cache[slot] = mesh.positions.len() as u32;
+                                cache[slot] = out.positions.len() as u32;
+                                used.push(slot as u16);
                                 let (v0, v1) = (voxel_at(gi), voxel_at(gi + AXIS_STRIDE[axis]));
                                 let t = v0.tsdf / (v0.tsdf - v1.tsdf);
                                 let local = IVec3::new(
@@ -330,21 +402,106 @@ impl TsdfMap {
                                 let mut p = (g.as_vec3() + Vec3::splat(0.5)) * vs;
                                 p[axis] += t * vs;
                                 let c = std::array::from_fn(|ch| v0.colour[ch] + t * (v1.colour[ch] - v0.colour[ch]));
-                                mesh.positions.push(p);
-                                mesh.colours.push(c);
-                                mesh.edge_keys.push((g, axis as u8));
+                                out.positions.push(p);
+                                out.colours.push(c);
+                                out.edge_keys.push((g, axis as u8));
                             }
                             idx[k] = cache[slot];
                         }
-                        mesh.triangles.push(idx);
+                        out.triangles.push(idx);
                     }
                 }
             }
         }
-        if let Some(&first) = mesh.positions.first() {
-            let (lo, hi) = mesh.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        for &slot in used.iter() {
+            cache[slot as usize] = u32::MAX;
+        }
+        used.clear();
+        // Built in the (cache-warm) scratch mesh, copied out in bulk: pushing into the block's
+        // own buffers, cold since the last frame, stalled on their stores.
+        mesh.positions.extend_from_slice(&out.positions);
+        mesh.colours.extend_from_slice(&out.colours);
+        mesh.edge_keys.extend_from_slice(&out.edge_keys);
+        mesh.triangles.extend_from_slice(&out.triangles);
+        if let Some(&first) = out.positions.first() {
+            let (lo, hi) = out.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
             mesh.min = lo;
             mesh.max = hi;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::block::BLOCK_VOXELS;
+    use crate::TsdfConfig;
+    use rand::{Rng, SeedableRng};
+    use rustc_hash::FxHashSet;
+
+    /// Voxels of a sphere's TSDF written directly (with unobserved and low-weight voxels
+    /// sprinkled in), meshed incrementally, against dense marching cubes over every cell.
+    #[test]
+    fn block_meshes_equal_dense_marching_cubes() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let cfg = TsdfConfig { voxel_size_m: 0.1, trunc_voxels: 3.0, ..TsdfConfig::default() };
+        let mut map = TsdfMap::new(cfg);
+        let (centre, radius, trunc) = (Vec3::new(0.13, -0.21, 0.05), 1.1, 0.3);
+        for z in -3..3 {
+            for y in -3..3 {
+                for x in -3..3 {
+                    let key = IVec3::new(x, y, z);
+                    let (id, _) = map.allocate(key);
+                    let block = &mut map.blocks[id as usize];
+                    for i in 0..BLOCK_VOXELS {
+                        let l = IVec3::new(i as i32 % 8, i as i32 / 8 % 8, i as i32 / 64);
+                        let p = ((key * BLOCK_SIZE + l).as_vec3() + Vec3::splat(0.5)) * cfg.voxel_size_m;
+                        let sdf = p.distance(centre) - radius;
+                        let weight = if sdf < -trunc || rng.random_bool(0.03) {
+                            0.0
+                        } else if rng.random_bool(0.05) {
+                            0.5
+                        } else {
+                            rng.random_range(1.0..5.0)
+                        };
+                        let v = Voxel { tsdf: (sdf / trunc).min(1.0), weight, colour: [l.x as f32 / 8.0, 0.5, 0.25] };
+                        block.set_voxel(i, v);
+                    }
+                    map.refresh_sign_flags(id);
+                }
+            }
+        }
+        let mesh = map.extract_mesh(1.0);
+        // Dense reference: every cell whose 8 corners are observed with weight >= 1.
+        let cases = &table().cases;
+        let (mut triangles, mut edges) = (0usize, FxHashSet::default());
+        for z in -24..24 {
+            for y in -24..24 {
+                for x in -24..24 {
+                    let g = IVec3::new(x, y, z);
+                    let corners: Option<Vec<Voxel>> = (0..8)
+                        .map(|c| {
+                            let v = *map.voxel(g + IVec3::new(c & 1, (c >> 1) & 1, c >> 2))?;
+                            (v.weight > 0.0 && v.weight >= 1.0).then_some(v)
+                        })
+                        .collect();
+                    let Some(corners) = corners else { continue };
+                    let case = (0..8).fold(0, |a, c| a | ((corners[c].tsdf < 0.0) as usize) << c);
+                    triangles += cases[case].len();
+                    for tri in &cases[case] {
+                        for &e in tri {
+                            let o = edge_start(e as usize);
+                            let s = g + IVec3::new(o as i32 & 1, (o as i32 >> 1) & 1, o as i32 >> 2);
+                            edges.insert((s, edge_axis(e as usize) as u8));
+                        }
+                    }
+                }
+            }
+        }
+        assert!(triangles > 1000, "{triangles}");
+        assert_eq!(mesh.triangles.len(), triangles);
+        assert_eq!(mesh.positions.len(), edges.len());
+        let got: FxHashSet<EdgeKey> = map.meshes.iter().flat_map(|m| m.edge_keys.iter().copied()).collect();
+        assert_eq!(got, edges);
     }
 }

@@ -188,6 +188,15 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     map.update_mesh(1.0);
     let mut ms = Vec::with_capacity(args.iterations);
+    // Work done per timed frame (integration and re-meshing), reported as means.
+    let (mut touched, mut updated, mut voxels, mut remeshed, mut counted) = (0usize, 0usize, 0usize, 0usize, 0usize);
+    let mut count = |s: sgam_map::IntegrateStats, m: usize| {
+        touched += s.blocks_touched;
+        updated += s.blocks_updated;
+        voxels += s.voxels_updated;
+        remeshed += m;
+        counted += 1;
+    };
     for k in 0..args.iterations {
         let (cam, frame) = &seq[warm + k];
         let sources: Vec<SourceView<'_>> =
@@ -195,16 +204,14 @@ pub fn run(args: BenchArgs) -> Result<()> {
         let t = Instant::now();
         match args.subject {
             Subject::Integrate => {
-                map.integrate(frame, cam);
+                count(map.integrate(frame, cam), 0);
             }
             Subject::Mesh => {
-                let t0 = Instant::now();
-                map.integrate(frame, cam);
-                let integ = t0.elapsed();
+                let s = map.integrate(frame, cam);
                 let t1 = Instant::now();
-                map.update_mesh(1.0);
+                let m = map.update_mesh(1.0);
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
-                std::hint::black_box(integ);
+                count(s, m);
                 continue;
             }
             Subject::Render => {
@@ -225,8 +232,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
             Subject::MapStep => {
                 let r = map.render(cam);
                 std::hint::black_box(warp_colour(cam, &r.depth_m, &sources, &warp));
-                map.integrate(frame, cam);
-                map.update_mesh(1.0);
+                let s = map.integrate(frame, cam);
+                let m = map.update_mesh(1.0);
+                count(s, m);
             }
             Subject::Synth => {
                 std::hint::black_box(renderer.render(cam, &RenderConfig::default()));
@@ -240,6 +248,16 @@ pub fn run(args: BenchArgs) -> Result<()> {
         }
     }
     let subject = format!("{:?}", args.subject).to_lowercase();
-    print_line(&args, &subject, &ms, json!({ "blocks": map.block_count() }));
+    let mut extra = json!({ "blocks": map.block_count() });
+    if counted > 0 {
+        let mean = |x: usize| (x as f64 / counted as f64).round();
+        extra["blocks_touched"] = json!(mean(touched));
+        extra["blocks_updated"] = json!(mean(updated));
+        extra["voxels_updated"] = json!(mean(voxels));
+        if remeshed > 0 {
+            extra["blocks_remeshed"] = json!(mean(remeshed));
+        }
+    }
+    print_line(&args, &subject, &ms, extra);
     Ok(())
 }
