@@ -482,7 +482,7 @@ mod tests {
                     let corners: Option<Vec<Voxel>> = (0..8)
                         .map(|c| {
                             let v = *map.voxel(g + IVec3::new(c & 1, (c >> 1) & 1, c >> 2))?;
-                            (v.weight > 0.0 && v.weight >= 1.0).then_some(v)
+                            (v.weight >= 1.0).then_some(v)
                         })
                         .collect();
                     let Some(corners) = corners else { continue };
