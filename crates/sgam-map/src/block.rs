@@ -25,17 +25,38 @@ impl Voxel {
     pub const EMPTY: Voxel = Voxel { tsdf: 1.0, weight: 0.0, colour: [0.0; 3] };
 }
 
+/// Voxel rows (of 8 along x) per block.
+pub(crate) const ROWS: usize = (BLOCK_SIZE * BLOCK_SIZE) as usize;
+const N: usize = BLOCK_SIZE as usize;
+
 /// A dense block of `8 x 8 x 8` voxels; voxel `(x, y, z)` (local, each in `0..8`) is at index
 /// `x + 8 y + 64 z`. Block key `k` covers global voxels `8 k .. 8 k + 7` on each axis.
+///
+/// Stored as planes (tsdf, weight, and one per colour channel), each as 64 rows of 8 voxels
+/// along x: the integration updates a row with 8-wide vector operations, and meshing reads only
+/// the tsdf and weight planes.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Block {
-    /// The voxels, `x` fastest.
-    pub voxels: Box<[Voxel; BLOCK_VOXELS]>,
+    pub(crate) planes: Box<Planes>,
+}
+
+/// The voxel planes of a [`Block`]; row `y + 8 z`, lane `x`.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct Planes {
+    pub tsdf: [[f32; N]; ROWS],
+    pub weight: [[f32; N]; ROWS],
+    pub colour: [[[f32; N]; ROWS]; 3],
 }
 
 impl Default for Block {
     fn default() -> Self {
-        Self { voxels: Box::new([Voxel::EMPTY; BLOCK_VOXELS]) }
+        Self {
+            planes: Box::new(Planes {
+                tsdf: [[Voxel::EMPTY.tsdf; N]; ROWS],
+                weight: [[Voxel::EMPTY.weight; N]; ROWS],
+                colour: [[[0.0; N]; ROWS]; 3],
+            }),
+        }
     }
 }
 
@@ -43,13 +64,30 @@ impl Block {
     /// Voxel `i` ([`local_index`]).
     #[inline]
     pub fn voxel(&self, i: usize) -> Voxel {
-        self.voxels[i]
+        let (r, x) = (i / N, i % N);
+        let p = &self.planes;
+        Voxel {
+            tsdf: p.tsdf[r][x],
+            weight: p.weight[r][x],
+            colour: [p.colour[0][r][x], p.colour[1][r][x], p.colour[2][r][x]],
+        }
     }
 
     /// Overwrites voxel `i` ([`local_index`]).
     #[inline]
     pub fn set_voxel(&mut self, i: usize, v: Voxel) {
-        self.voxels[i] = v;
+        let (r, x) = (i / N, i % N);
+        let p = &mut self.planes;
+        p.tsdf[r][x] = v.tsdf;
+        p.weight[r][x] = v.weight;
+        for ch in 0..3 {
+            p.colour[ch][r][x] = v.colour[ch];
+        }
+    }
+
+    /// All voxels in index order ([`local_index`]).
+    pub fn voxels(&self) -> impl Iterator<Item = Voxel> + '_ {
+        (0..BLOCK_VOXELS).map(|i| self.voxel(i))
     }
 }
 

@@ -5,16 +5,13 @@ use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
 use sgam_core::{is_valid_depth, Camera, RgbdFrame, Rigid3};
 
-use crate::block::{floor_ivec3, Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS};
+use crate::block::{floor_ivec3, Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS, ROWS};
 use crate::mesh::BlockMesh;
 use crate::TsdfConfig;
 
 /// Blocks per super-block edge: the coarse grid used to find the blocks inside a frustum or a
 /// box without visiting the whole map.
 pub(crate) const SUPER_SIZE: i32 = 8;
-
-/// Voxel rows (of 8 along x) per block.
-pub(crate) const ROWS: usize = (BLOCK_SIZE * BLOCK_SIZE) as usize;
 
 /// What one [`TsdfMap::integrate`] call did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -113,10 +110,10 @@ impl TsdfMap {
 
     /// The voxel at global voxel index `g`, if its block is allocated.
     #[inline]
-    pub fn voxel(&self, g: IVec3) -> Option<&Voxel> {
+    pub fn voxel(&self, g: IVec3) -> Option<Voxel> {
         let k = crate::block::block_of_voxel(g);
         let l = crate::block::voxel_in_block(g);
-        self.block(k).map(|b| &b.voxels[crate::block::local_index(l.x, l.y, l.z)])
+        self.block(k).map(|b| b.voxel(crate::block::local_index(l.x, l.y, l.z)))
     }
 
     /// Allocates the block `key` if needed and returns its id.
@@ -602,7 +599,8 @@ impl<'a> UpdateContext<'a> {
         if depth.is_empty() {
             return (0, block_flags(rows));
         }
-        for (row_index, row) in block.voxels.chunks_exact_mut(N).enumerate() {
+        let planes = &mut *block.planes;
+        for row_index in 0..ROWS {
             let (y, z) = (row_index % N, row_index / N);
             let p = base + dy * y as f32 + dz * z as f32;
             // Projection of the row's voxel centres: pixel index (0 when outside, with
@@ -656,30 +654,36 @@ impl<'a> UpdateContext<'a> {
                 flags |= rows[row_index];
                 continue;
             }
-            let (mut any_pos, mut any_neg) = (false, false);
+            // Eight lanes at once: voxels that take no observation keep their values.
+            let (tsdf, weight) = (&mut planes.tsdf[row_index], &mut planes.weight[row_index]);
+            let mut wp = [0.0f32; N];
+            let mut inv = [0.0f32; N];
             for i in 0..N {
-                let vox = &mut row[i];
-                let at = pix[i].min(depth.len() - 1);
-                let (sdf, take) = (sdf[i], take[i]);
-                let obs = (sdf * inv_trunc).min(1.0);
-                let wp = vox.weight.min(cap_prev);
-                let inv = 1.0 / (wp + 1.0);
-                let tsdf = if take { (vox.tsdf * wp + obs) * inv } else { vox.tsdf };
-                let weight = if take { wp + 1.0 } else { vox.weight };
-                vox.tsdf = tsdf;
-                vox.weight = weight;
-                if has_colour {
-                    let c = colour[at];
+                let obs = (sdf[i] * inv_trunc).min(1.0);
+                wp[i] = weight[i].min(cap_prev);
+                inv[i] = 1.0 / (wp[i] + 1.0);
+                let t = (tsdf[i] * wp[i] + obs) * inv[i];
+                tsdf[i] = if take[i] { t } else { tsdf[i] };
+                weight[i] = if take[i] { wp[i] + 1.0 } else { weight[i] };
+            }
+            if has_colour {
+                let mut c = [[0.0f32; N]; 3];
+                for i in 0..N {
+                    let rgb = colour[pix[i].min(depth.len() - 1)];
                     for ch in 0..3 {
-                        let mixed = (vox.colour[ch] * wp + c[ch]) * inv;
-                        vox.colour[ch] = if take { mixed } else { vox.colour[ch] };
+                        c[ch][i] = rgb[ch];
                     }
                 }
-                n += take as usize;
-                any_neg |= weight > 0.0 && tsdf < 0.0;
-                any_pos |= weight > 0.0 && tsdf >= 0.0;
+                for ch in 0..3 {
+                    let plane = &mut planes.colour[ch][row_index];
+                    for i in 0..N {
+                        let mixed = (plane[i] * wp[i] + c[ch][i]) * inv[i];
+                        plane[i] = if take[i] { mixed } else { plane[i] };
+                    }
+                }
             }
-            rows[row_index] = (any_pos as u8 * HAS_POSITIVE) | (any_neg as u8 * HAS_NEGATIVE);
+            n += take.iter().filter(|&&t| t).count();
+            rows[row_index] = row_flags(tsdf, weight);
             flags |= rows[row_index];
         }
         (n, flags)
@@ -693,15 +697,19 @@ fn block_flags(rows: &[u8; ROWS]) -> u8 {
 
 /// The sign summaries ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's voxel rows.
 fn row_flags_of(block: &Block) -> [u8; ROWS] {
-    let mut rows = [0u8; ROWS];
-    for (flags, row) in rows.iter_mut().zip(block.voxels.chunks_exact(BLOCK_SIZE as usize)) {
-        for v in row {
-            if v.weight > 0.0 {
-                *flags |= if v.tsdf < 0.0 { HAS_NEGATIVE } else { HAS_POSITIVE };
-            }
-        }
+    let p = &block.planes;
+    std::array::from_fn(|r| row_flags(&p.tsdf[r], &p.weight[r]))
+}
+
+/// The sign summary of one voxel row.
+#[inline(always)]
+fn row_flags(tsdf: &[f32; BLOCK_SIZE as usize], weight: &[f32; BLOCK_SIZE as usize]) -> u8 {
+    let (mut pos, mut neg) = (false, false);
+    for x in 0..BLOCK_SIZE as usize {
+        neg |= weight[x] > 0.0 && tsdf[x] < 0.0;
+        pos |= weight[x] > 0.0 && tsdf[x] >= 0.0;
     }
-    rows
+    (pos as u8 * HAS_POSITIVE) | (neg as u8 * HAS_NEGATIVE)
 }
 
 #[cfg(test)]
@@ -794,12 +802,12 @@ mod tests {
         let mut blocks: Vec<Block> = (0..10)
             .map(|i| {
                 let mut b = Block::default();
-                b.voxels[0].weight = i as f32;
+                b.set_voxel(0, Voxel { weight: i as f32, ..Voxel::EMPTY });
                 b
             })
             .collect();
         let got = disjoint_mut(&mut blocks, &[0, 3, 4, 9]);
-        let w: Vec<f32> = got.iter().map(|b| b.voxels[0].weight).collect();
+        let w: Vec<f32> = got.iter().map(|b| b.voxel(0).weight).collect();
         assert_eq!(w, vec![0.0, 3.0, 4.0, 9.0]);
     }
 }

@@ -62,8 +62,6 @@ const AXIS_STRIDE: [usize; 3] = [1, GRID, GRID * GRID];
 
 /// Per-thread working memory of [`TsdfMap::mesh_block`], reused across blocks.
 struct MeshScratch {
-    /// TSDF per grid point (only the gathered rows are meaningful).
-    val: Box<[f32; GRID * GRID * GRID]>,
     /// Vertex index per (grid point, axis) edge; `u32::MAX` = none. All `MAX` between blocks.
     cache: Box<[u32; GRID * GRID * GRID * 3]>,
     /// Slots of `cache` set by the current block (reset after it).
@@ -75,7 +73,6 @@ struct MeshScratch {
 impl MeshScratch {
     fn new() -> Self {
         Self {
-            val: Box::new([f32::NAN; GRID * GRID * GRID]),
             cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]),
             used: Vec::new(),
             out: BlockMesh::default(),
@@ -299,67 +296,47 @@ impl TsdfMap {
         if !any_cell {
             return;
         }
-        // TSDF per needed grid point, NaN where unobserved or below the weight threshold.
-        let val = &mut scratch.val;
-        let mut any_inside = false;
-        let mut any_outside = false;
+        // Per needed grid row (y, z): bit x set when grid point x is usable (observed, weight at
+        // the threshold) / usable and inside (tsdf < 0).
+        let mut valid_rows = [0u16; GRID * GRID];
+        let mut neg_rows = [0u16; GRID * GRID];
+        let usable = |w: f32| w > 0.0 && w >= weight_threshold;
         for z in 0..GRID {
             for y in 0..GRID {
-                let row = GRID * (y + GRID * z);
                 if !needed[y + GRID * z] {
                     continue;
                 }
-                val[row..row + GRID].fill(f32::NAN);
                 let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
-                let (ly, lz) = ((y % 8) as i32, (z % 8) as i32);
+                let r = y % 8 + 8 * (z % 8);
+                let (mut valid, mut neg) = (0u16, 0u16);
                 if let Some(b) = neighbours[oyz] {
-                    let start = local_index(0, ly, lz);
-                    for (x, v) in b.voxels[start..start + BLOCK_SIZE as usize].iter().enumerate() {
-                        if v.weight > 0.0 && v.weight >= weight_threshold {
-                            val[row + x] = v.tsdf;
-                            any_inside |= v.tsdf < 0.0;
-                            any_outside |= v.tsdf >= 0.0;
-                        }
+                    let (t, w) = (&b.planes.tsdf[r], &b.planes.weight[r]);
+                    for x in 0..BLOCK_SIZE as usize {
+                        valid |= (usable(w[x]) as u16) << x;
+                        neg |= ((usable(w[x]) && t[x] < 0.0) as u16) << x;
                     }
                 }
                 if let Some(b) = neighbours[oyz | 1] {
-                    let v = &b.voxels[local_index(0, ly, lz)];
-                    if v.weight > 0.0 && v.weight >= weight_threshold {
-                        val[row + GRID - 1] = v.tsdf;
-                        any_inside |= v.tsdf < 0.0;
-                        any_outside |= v.tsdf >= 0.0;
-                    }
+                    let (t, w) = (b.planes.tsdf[r][0], b.planes.weight[r][0]);
+                    valid |= (usable(w) as u16) << 8;
+                    neg |= ((usable(w) && t < 0.0) as u16) << 8;
                 }
+                valid_rows[y + GRID * z] = valid;
+                neg_rows[y + GRID * z] = neg;
             }
-        }
-        if !(any_inside && any_outside) {
-            return;
         }
         let voxel_at = |gi: usize| -> Voxel {
             let (x, y, z) = (gi % GRID, gi / GRID % GRID, gi / (GRID * GRID));
             let o = (x == GRID - 1) as usize | ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
             neighbours[o]
-                .map(|b| b.voxels[local_index((x % 8) as i32, (y % 8) as i32, (z % 8) as i32)])
+                .map(|b| b.voxel(local_index((x % 8) as i32, (y % 8) as i32, (z % 8) as i32)))
                 .unwrap_or(Voxel::EMPTY)
         };
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
-        let MeshScratch { cache, used, out, .. } = scratch;
+        let MeshScratch { cache, used, out } = scratch;
         out.clear();
-        // Per grid row (y, z): bit x set when grid point x is usable / inside.
-        let mut valid_rows = [0u16; GRID * GRID];
-        let mut neg_rows = [0u16; GRID * GRID];
-        for r in 0..GRID * GRID {
-            if !needed[r] {
-                continue;
-            }
-            for x in 0..GRID {
-                let t = val[r * GRID + x];
-                valid_rows[r] |= (!t.is_nan() as u16) << x;
-                neg_rows[r] |= ((t < 0.0) as u16) << x;
-            }
-        }
         for z in 0..BLOCK_SIZE as usize {
             for y in 0..BLOCK_SIZE as usize {
                 if !cell_rows[y + 8 * z] {
@@ -481,7 +458,7 @@ mod tests {
                     let g = IVec3::new(x, y, z);
                     let corners: Option<Vec<Voxel>> = (0..8)
                         .map(|c| {
-                            let v = *map.voxel(g + IVec3::new(c & 1, (c >> 1) & 1, c >> 2))?;
+                            let v = map.voxel(g + IVec3::new(c & 1, (c >> 1) & 1, c >> 2))?;
                             (v.weight >= 1.0).then_some(v)
                         })
                         .collect();

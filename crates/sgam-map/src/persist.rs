@@ -16,7 +16,7 @@ use std::io::{Read, Write};
 
 use glam::IVec3;
 
-use crate::block::{Block, BLOCK_VOXELS};
+use crate::block::{Block, Voxel, BLOCK_VOXELS};
 use crate::{MapError, TsdfConfig, TsdfMap};
 
 const MAGIC: &[u8; 8] = b"SGAMTSDF";
@@ -48,7 +48,7 @@ impl TsdfMap {
             for v in [k.x, k.y, k.z] {
                 buf.extend_from_slice(&v.to_le_bytes());
             }
-            for vox in self.blocks[id as usize].voxels.iter() {
+            for vox in self.blocks[id as usize].voxels() {
                 for v in [vox.tsdf, vox.weight, vox.colour[0], vox.colour[1], vox.colour[2]] {
                     buf.extend_from_slice(&v.to_le_bytes());
                 }
@@ -121,10 +121,10 @@ impl TsdfMap {
                 return Err(MapError::Truncated(format!("duplicate block key {key}")));
             }
             let mut block = Block::default();
-            for vox in block.voxels.iter_mut() {
-                vox.tsdf = cur.f32()?;
-                vox.weight = cur.f32()?;
-                vox.colour = [cur.f32()?, cur.f32()?, cur.f32()?];
+            for i in 0..BLOCK_VOXELS {
+                let (tsdf, weight) = (cur.f32()?, cur.f32()?);
+                let colour = [cur.f32()?, cur.f32()?, cur.f32()?];
+                block.set_voxel(i, Voxel { tsdf, weight, colour });
             }
             map.blocks[id as usize] = block;
             map.refresh_sign_flags(id);

@@ -371,7 +371,7 @@ impl<'a> BlockCache<'a> {
             self.block = map.index.get(&k).map(|&i| &map.blocks[i as usize]);
         }
         let l = voxel_in_block(g);
-        self.block.map(|b| b.voxels[local_index(l.x, l.y, l.z)])
+        self.block.map(|b| b.voxel(local_index(l.x, l.y, l.z)))
     }
 }
 

@@ -143,7 +143,7 @@ fn weight_cap_bounds_the_weight_and_tracks_changes() {
     let max_w = map
         .block_keys()
         .iter()
-        .flat_map(|k| map.block(*k).unwrap().voxels.iter().map(|v| v.weight).collect::<Vec<_>>())
+        .flat_map(|k| map.block(*k).unwrap().voxels().map(|v| v.weight).collect::<Vec<_>>())
         .fold(0.0, f32::max);
     assert_eq!(max_w, 4.0);
 }
