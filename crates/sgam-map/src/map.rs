@@ -385,6 +385,23 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         false
                     }
                 };
+                // Walks the own band segment of every pixel of the rectangle with depth in
+                // `lo ..= hi`.
+                let walk_pixels = |(u0, u1): (usize, usize),
+                                   (v0, v1): (usize, usize),
+                                   lo: f32,
+                                   hi: f32,
+                                   insert: &mut dyn FnMut(IVec3)| {
+                    for v in v0..v1 {
+                        for u in u0..u1 {
+                            let d = depth[v * w + u];
+                            if d >= lo && d <= hi {
+                                let dir = ray(u as f32, v as f32);
+                                walk_cells(origin + dir * (d - trunc).max(0.0), origin + dir * (d + trunc), &mut *insert);
+                            }
+                        }
+                    }
+                };
                 let bv0 = big_row * big;
                 for bu0 in (0..w).step_by(big) {
                     // the (up to) four s x s tiles of this 2s x 2s tile
@@ -416,20 +433,38 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         if t.count == 0 {
                             continue;
                         }
-                        let smooth = tile > 1 && t.max - t.min <= trunc;
-                        if !(smooth && cover_tube(us, vs, (t.min - trunc).max(0.0), t.max + trunc, &mut insert)) {
+                        if tile == 1 {
+                            walk_pixels(us, vs, f32::NEG_INFINITY, f32::INFINITY, &mut insert);
+                            continue;
+                        }
+                        // Split the tile's depths into clusters spanning at most the truncation
+                        // each (a depth edge gives two or three); every cluster's pixels lie in
+                        // the tube of the tile's corner rays over the cluster's range.
+                        let mut ds = [0.0f32; 64];
+                        let mut n = 0;
+                        if t.max - t.min <= trunc {
+                            (ds[0], ds[1], n) = (t.min, t.max, 2);
+                        } else {
                             for v in vs.0..vs.1 {
-                                for u in us.0..us.1 {
-                                    let d = depth[v * w + u];
-                                    if !d.is_nan() {
-                                        let dir = ray(u as f32, v as f32);
-                                        walk_cells(
-                                            origin + dir * (d - trunc).max(0.0),
-                                            origin + dir * (d + trunc),
-                                            &mut insert,
-                                        );
+                                for &d in &depth[v * w + us.0..v * w + us.1] {
+                                    if !d.is_nan() && n < ds.len() {
+                                        ds[n] = d;
+                                        n += 1;
                                     }
                                 }
+                            }
+                            ds[..n].sort_unstable_by(f32::total_cmp);
+                        }
+                        let mut i = 0;
+                        while i < n {
+                            let lo = ds[i];
+                            while i + 1 < n && ds[i + 1] - lo <= trunc {
+                                i += 1;
+                            }
+                            let hi = ds[i];
+                            i += 1;
+                            if !cover_tube(us, vs, (lo - trunc).max(0.0), hi + trunc, &mut insert) {
+                                walk_pixels(us, vs, lo, hi, &mut insert);
                             }
                         }
                     }
