@@ -3,7 +3,7 @@
 # `sgam fuse` and with Open3D's VoxelBlockGrid in one run, and compare time, vertex count and
 # mesh-to-mesh distance. Installs the peer (open3d-cpu, libusb) itself; tests never do.
 #
-# Usage: bench/fuse_vs_open3d.sh [SEQ_DIR] [OUT_DIR]
+# Usage: [ROUNDS=3] bench/fuse_vs_open3d.sh [SEQ_DIR] [OUT_DIR]   (medians over ROUNDS interleaved runs)
 #   SEQ_DIR defaults to ../shared/data/7scenes-redkitchen-50 (2 cm voxels, 8 cm truncation, 4 m cut)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,24 +18,25 @@ fi
 cargo build --release -q -p sgam
 # Ours twice per round: frames read one at a time (the default) and --preload (frames decoded
 # up front, as the peer script does: the like-for-like timing).
-for run in 1 2 3; do
+ROUNDS=${ROUNDS:-3}
+for run in $(seq 1 "$ROUNDS"); do
   ./target/release/sgam fuse "$SEQ" --voxel-size 0.02 --trunc-voxels 4 --depth-max 4.0 \
       --out "$OUT/sgam.ply" --stats-json "$OUT/sgam-$run.json" 2>/dev/null
   ./target/release/sgam fuse "$SEQ" --voxel-size 0.02 --trunc-voxels 4 --depth-max 4.0 --preload \
       --out "$OUT/sgam-preload.ply" --stats-json "$OUT/sgam-preload-$run.json" 2>/dev/null
   python3 "$PEER" "$SEQ" --voxel 0.02 --trunc-mult 4 --depth-max 4.0 --out "$OUT/open3d.ply" > "$OUT/open3d-$run.json"
 done
-python3 - "$OUT" <<'PY'
+python3 - "$OUT" "$ROUNDS" <<'PY'
 import json, sys, statistics as st
-out = sys.argv[1]
-s = [json.load(open(f"{out}/sgam-{r}.json")) for r in (1, 2, 3)]
-p = [json.load(open(f"{out}/sgam-preload-{r}.json")) for r in (1, 2, 3)]
-o = [json.loads(open(f"{out}/open3d-{r}.json").read().strip().splitlines()[-1]) for r in (1, 2, 3)]
+out, rounds = sys.argv[1], range(1, int(sys.argv[2]) + 1)
+s = [json.load(open(f"{out}/sgam-{r}.json")) for r in rounds]
+p = [json.load(open(f"{out}/sgam-preload-{r}.json")) for r in rounds]
+o = [json.loads(open(f"{out}/open3d-{r}.json").read().strip().splitlines()[-1]) for r in rounds]
 ours = st.median(x["integrate_plus_mesh_ms_per_frame"] for x in s)
 ours_pre = st.median(x["integrate_plus_mesh_ms_per_frame"] for x in p)
 peer = st.median(x["integrate_plus_mesh_ms_per_frame"] for x in o)
 print(json.dumps({
-  "frames": s[0]["frames"],
+  "frames": s[0]["frames"], "rounds": len(s),
   "sgam_integrate_ms_per_frame": st.median(x["integrate_ms_per_frame"] for x in s),
   "sgam_mesh_ms_per_frame": st.median(x["mesh_ms_per_frame"] for x in s),
   "sgam_integrate_plus_mesh_ms_per_frame": ours,

@@ -3,7 +3,7 @@
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
-use sgam_core::{is_valid_depth, Camera, RgbdFrame, Rigid3};
+use sgam_core::{Camera, RgbdFrame, Rigid3};
 
 use crate::block::{floor_ivec3, Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS, ROWS};
 use crate::mesh::BlockMesh;
@@ -173,9 +173,9 @@ impl TsdfMap {
         if !camera.world_from_camera.is_finite() || !positive(cfg.voxel_size_m) || !positive(cfg.trunc_voxels) {
             return stats;
         }
-        let depth = usable_depth(frame, &cfg);
+        let depth = &frame.depth_m.data[..];
         let (w, h) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
-        let (keys, pixels_used) = touched_blocks(&depth, w, h, camera, &cfg);
+        let (keys, pixels_used) = touched_blocks(depth, w, h, camera, &cfg);
         stats.pixels_used = pixels_used;
         stats.blocks_touched = keys.len();
         let mut ids = Vec::with_capacity(keys.len());
@@ -191,11 +191,18 @@ impl TsdfMap {
             let blocks = disjoint_mut(&mut self.blocks, &ids);
             let rows = disjoint_mut(&mut self.row_flags, &ids);
             let keys_of = &self.keys;
-            blocks
-                .into_par_iter()
+            // Visit the blocks in image order (Morton order of where their centres project), so
+            // that the frame's depth and colour pixels read by consecutive blocks are cache-warm
+            // and each thread's share covers one part of the image.
+            let mut work: Vec<(u64, &mut Block, &mut [u8; ROWS], u32)> = blocks
+                .into_iter()
                 .zip(rows)
-                .zip(ids.par_iter())
-                .map(|((block, rows), &id)| {
+                .zip(&ids)
+                .map(|((b, r), &id)| (ctx.image_order(keys_of[id as usize], &cfg), b, r, id))
+                .collect();
+            work.sort_unstable_by_key(|w| w.0);
+            work.into_par_iter()
+                .map(|(_, block, rows, id)| {
                     let (n, flags) = ctx.update_block(block, rows, keys_of[id as usize]);
                     (id, n, flags)
                 })
@@ -230,10 +237,24 @@ fn disjoint_mut<'a, T>(blocks: &'a mut [T], ids: &[u32]) -> Vec<&'a mut T> {
     out
 }
 
-/// The frame's depth with NaN wherever it is unusable (invalid or outside the depth range).
-fn usable_depth(frame: &RgbdFrame, cfg: &TsdfConfig) -> Vec<f32> {
-    let (lo, hi) = (cfg.depth_min_m, cfg.depth_max_m);
-    frame.depth_m.data.iter().map(|&d| if is_valid_depth(d) && d >= lo && d <= hi { d } else { f32::NAN }).collect()
+/// Which depth readings integrate: valid (finite, positive) and inside the depth range. NaN,
+/// infinities, zero and out-of-range readings all fail the one comparison chain (vectorisable),
+/// so the frame's depth is read as it is, without a cleaned copy.
+#[derive(Debug, Clone, Copy)]
+struct Usable {
+    lo: f32,
+    hi: f32,
+}
+
+impl Usable {
+    fn new(cfg: &TsdfConfig) -> Self {
+        Self { lo: cfg.depth_min_m, hi: cfg.depth_max_m }
+    }
+
+    #[inline(always)]
+    fn ok(self, d: f32) -> bool {
+        (d > 0.0) & (d >= self.lo) & (d <= self.hi)
+    }
 }
 
 /// Usable-depth summary of a pixel rectangle.
@@ -247,16 +268,16 @@ struct TileStats {
 impl TileStats {
     const EMPTY: TileStats = TileStats { min: f32::INFINITY, max: f32::NEG_INFINITY, count: 0 };
 
-    /// Over `depth[v * w + u]` for `u in u0..u1`, `v in v0..v1` (NaN = unusable).
-    fn of(depth: &[f32], w: usize, (u0, u1): (usize, usize), (v0, v1): (usize, usize)) -> Self {
-        // Eight lanes, and `if d < m { d } else { m }`, which keeps `m` when `d` is NaN: one
-        // `minps` per lane group (vectorised), where `f32::min` would add a NaN blend.
+    /// Over the usable `depth[v * w + u]` for `u in u0..u1`, `v in v0..v1`.
+    fn of(depth: &[f32], usable: Usable, w: usize, (u0, u1): (usize, usize), (v0, v1): (usize, usize)) -> Self {
+        // Eight lanes of branch-free selects (vectorised); `f32::min` would add a NaN blend.
         const L: usize = 8;
         let (mut mn, mut mx, mut n) = ([f32::INFINITY; L], [f32::NEG_INFINITY; L], [0u32; L]);
         let mut add = |i: usize, d: f32| {
-            mn[i] = if d < mn[i] { d } else { mn[i] };
-            mx[i] = if d > mx[i] { d } else { mx[i] };
-            n[i] += !d.is_nan() as u32;
+            let ok = usable.ok(d);
+            mn[i] = if ok & (d < mn[i]) { d } else { mn[i] };
+            mx[i] = if ok & (d > mx[i]) { d } else { mx[i] };
+            n[i] += ok as u32;
         };
         for v in v0..v1 {
             let row = &depth[v * w + u0..v * w + u1];
@@ -283,7 +304,7 @@ impl TileStats {
 }
 
 /// The block keys crossed by every usable pixel's truncation band, sorted, plus the number of
-/// usable pixels. `depth` is `w x h`, NaN where unusable ([`usable_depth`]).
+/// usable pixels ([`Usable`]). `depth` is the frame's, `w x h`.
 ///
 /// Pixels are handled in tiles. In a tile whose usable depths span at most the truncation
 /// distance, every pixel's band segment lies inside the "tube" bounded by the four corner
@@ -293,9 +314,11 @@ impl TileStats {
 /// cells meet the tube; otherwise the bounding box of those cells is inserted (a superset).
 /// Either way every block a tile pixel's band crosses is allocated. Tiles are `2s x 2s` pixels
 /// when their own far end allows it (near surfaces), else `s x s` with `s` chosen for the
-/// depth range's far end; other tiles (depth edges) walk every pixel's own segment.
+/// depth range's far end. A tile whose depths span more (a depth edge, a slanted surface) is
+/// covered by one tube per occupied truncation-wide depth bin.
 fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let trunc = cfg.trunc_m();
+    let usable = Usable::new(cfg);
     let inv_block = 1.0 / cfg.block_size_m();
     let k = camera.intrinsics;
     let wfc: Rigid3 = camera.world_from_camera;
@@ -395,7 +418,7 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                     for v in v0..v1 {
                         for u in u0..u1 {
                             let d = depth[v * w + u];
-                            if d >= lo && d <= hi {
+                            if usable.ok(d) && d >= lo && d <= hi {
                                 let dir = ray(u as f32, v as f32);
                                 walk_cells(origin + dir * (d - trunc).max(0.0), origin + dir * (d + trunc), &mut *insert);
                             }
@@ -411,7 +434,7 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         for u0 in [bu0, bu0 + tile] {
                             if u0 < w && v0 < h {
                                 let (us, vs) = ((u0, (u0 + tile).min(w)), (v0, (v0 + tile).min(h)));
-                                subs[n_subs] = (us, vs, TileStats::of(depth, w, us, vs));
+                                subs[n_subs] = (us, vs, TileStats::of(depth, usable, w, us, vs));
                                 n_subs += 1;
                             }
                         }
@@ -434,35 +457,29 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                             continue;
                         }
                         if tile == 1 {
-                            walk_pixels(us, vs, f32::NEG_INFINITY, f32::INFINITY, &mut insert);
+                            walk_pixels(us, vs, 0.0, f32::INFINITY, &mut insert);
                             continue;
                         }
-                        // Split the tile's depths into clusters spanning at most the truncation
-                        // each (a depth edge gives two or three); every cluster's pixels lie in
-                        // the tube of the tile's corner rays over the cluster's range.
-                        let mut ds = [0.0f32; 64];
-                        let mut n = 0;
-                        if t.max - t.min <= trunc {
-                            (ds[0], ds[1], n) = (t.min, t.max, 2);
-                        } else {
+                        // Bin the tile's depths by truncation-wide bins from its nearest one (the
+                        // last bin takes the rest): each occupied bin's pixels lie in the tube of
+                        // the tile's corner rays over the bin's range. A depth edge occupies two
+                        // or three bins.
+                        let mut bins = 1u64;
+                        if t.max - t.min > trunc {
+                            let inv_trunc = 1.0 / trunc;
                             for v in vs.0..vs.1 {
                                 for &d in &depth[v * w + us.0..v * w + us.1] {
-                                    if !d.is_nan() && n < ds.len() {
-                                        ds[n] = d;
-                                        n += 1;
-                                    }
+                                    let b = ((d - t.min) * inv_trunc).clamp(0.0, 63.0) as u32;
+                                    bins |= (usable.ok(d) as u64) << b;
                                 }
                             }
-                            ds[..n].sort_unstable_by(f32::total_cmp);
                         }
-                        let mut i = 0;
-                        while i < n {
-                            let lo = ds[i];
-                            while i + 1 < n && ds[i + 1] - lo <= trunc {
-                                i += 1;
-                            }
-                            let hi = ds[i];
-                            i += 1;
+                        while bins != 0 {
+                            let b = bins.trailing_zeros();
+                            bins &= bins - 1;
+                            // (widened by a hair: a depth on a bin border may round into either)
+                            let lo = t.min + b as f32 * trunc - 1e-3 * trunc;
+                            let hi = if bins == 0 { t.max } else { t.min + (b + 1) as f32 * trunc + 1e-3 * trunc };
                             if !cover_tube(us, vs, (lo - trunc).max(0.0), hi + trunc, &mut insert) {
                                 walk_pixels(us, vs, lo, hi, &mut insert);
                             }
@@ -548,8 +565,9 @@ fn sign(x: f32) -> i32 {
 
 /// Per-frame constants of the voxel update.
 struct UpdateContext<'a> {
-    /// Usable depth per pixel (NaN where invalid or outside the depth range).
-    depth: Vec<f32>,
+    /// The frame's depth; only [`Usable`] readings integrate.
+    depth: &'a [f32],
+    usable: Usable,
     colour: &'a [[f32; 3]],
     width: usize,
     height: usize,
@@ -568,9 +586,8 @@ pub(crate) const HAS_POSITIVE: u8 = 1;
 pub(crate) const HAS_NEGATIVE: u8 = 2;
 
 impl<'a> UpdateContext<'a> {
-    /// `depth`: the frame's [`usable_depth`].
     fn new(
-        depth: Vec<f32>,
+        depth: &'a [f32],
         frame: &'a RgbdFrame,
         camera: &'a Camera,
         camera_from_world: &Rigid3,
@@ -581,6 +598,7 @@ impl<'a> UpdateContext<'a> {
         let colour_ok = frame.colour.data.len() == width * height;
         Self {
             depth,
+            usable: Usable::new(cfg),
             colour: if colour_ok { &frame.colour.data } else { &[] },
             width,
             height,
@@ -593,6 +611,27 @@ impl<'a> UpdateContext<'a> {
             trunc_m: cfg.trunc_m(),
             weight_cap: cfg.weight_cap.unwrap_or(f32::INFINITY),
         }
+    }
+
+    /// Sort key of block `key` in image order: the Morton code of the 16-pixel tile its centre
+    /// projects into (`u64::MAX` behind the camera).
+    fn image_order(&self, key: IVec3, cfg: &TsdfConfig) -> u64 {
+        let centre = (key.as_vec3() + Vec3::splat(0.5)) * cfg.block_size_m();
+        let p = self.camera_from_world.transform_point(centre);
+        if !(p.z > 0.0) {
+            return u64::MAX;
+        }
+        let tile = |x: f32, extent: usize| ((x / 16.0).clamp(0.0, (extent / 16) as f32) as u32).min(0xFFFF);
+        let u = tile(self.fx * p.x / p.z + self.cx, self.width);
+        let v = tile(self.fy * p.y / p.z + self.cy, self.height);
+        // interleave the bits of u and v
+        let spread = |mut x: u64| {
+            x = (x | x << 8) & 0x00FF_00FF;
+            x = (x | x << 4) & 0x0F0F_0F0F;
+            x = (x | x << 2) & 0x3333_3333;
+            (x | x << 1) & 0x5555_5555
+        };
+        spread(u as u64) | spread(v as u64) << 1
     }
 
     /// Updates one block; returns the number of voxels changed and the block's sign summary
@@ -615,6 +654,7 @@ impl<'a> UpdateContext<'a> {
         let (wf, hf) = (self.width as f32, self.height as f32);
         let width = self.width as i32;
         let depth = &self.depth[..self.width * self.height];
+        let usable = self.usable;
         let colour = self.colour;
         let has_colour = colour.len() == depth.len() && !depth.is_empty();
         let inv_trunc = 1.0 / self.trunc_m;
@@ -682,8 +722,7 @@ impl<'a> UpdateContext<'a> {
             for i in 0..N {
                 let at = pix[i].min(depth.len() - 1);
                 sdf[i] = depth[at] - zc[i];
-                // NaN (unusable pixel) fails this test.
-                take[i] = inside[i] & (sdf[i] >= neg_trunc);
+                take[i] = inside[i] & usable.ok(depth[at]) & (sdf[i] >= neg_trunc);
             }
             if !take.iter().any(|&t| t) {
                 flags |= rows[row_index];
@@ -807,14 +846,14 @@ mod tests {
                 depth_max_m: depth_max,
                 weight_cap: None,
             };
-            let (keys, used) = touched_blocks(&usable_depth(&frame, &cfg), w as usize, h as usize, &cam, &cfg);
+            let (keys, used) = touched_blocks(&frame.depth_m.data, w as usize, h as usize, &cam, &cfg);
             let got: FxHashSet<IVec3> = keys.iter().copied().collect();
             let trunc = cfg.trunc_m();
             let inv_block = 1.0 / cfg.block_size_m();
             let mut reference = FxHashSet::default();
             let mut n = 0;
             for (i, &d) in depth.iter().enumerate() {
-                if !is_valid_depth(d) {
+                if !sgam_core::is_valid_depth(d) {
                     continue;
                 }
                 n += 1;
