@@ -618,7 +618,7 @@ impl<'a> UpdateContext<'a> {
     fn image_order(&self, key: IVec3, cfg: &TsdfConfig) -> u64 {
         let centre = (key.as_vec3() + Vec3::splat(0.5)) * cfg.block_size_m();
         let p = self.camera_from_world.transform_point(centre);
-        if !(p.z > 0.0) {
+        if p.z.is_nan() || p.z <= 0.0 {
             return u64::MAX;
         }
         let tile = |x: f32, extent: usize| ((x / 16.0).clamp(0.0, (extent / 16) as f32) as u32).min(0xFFFF);
