@@ -4,6 +4,7 @@ use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use rustc_hash::{FxHashMap, FxHashSet};
 use sgam_core::{Camera, RgbdFrame, Rigid3};
+use wide::{bytemuck::cast, f32x8, i32x8};
 
 use crate::block::{floor_ivec3, Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS, ROWS};
 use crate::mesh::BlockMesh;
@@ -638,7 +639,7 @@ impl<'a> UpdateContext<'a> {
     /// (`rows` holds the per-row summaries and is kept up to date).
     ///
     /// Voxel centres along a block row are an arithmetic progression in camera space, so each
-    /// row is projected in one branch-free pass over its 8 voxels (vectorised by the compiler).
+    /// row is projected in one branch-free pass over its 8 voxels (8-lane SIMD, `wide`).
     /// A row none of whose voxels takes the observation (behind the surface, outside the image)
     /// is not touched at all: no voxel memory is read or written, its summary is reused. In the
     /// other rows the update is branch-free (voxels that take no observation are rewritten with
@@ -646,118 +647,81 @@ impl<'a> UpdateContext<'a> {
     #[inline(never)]
     fn update_block(&self, block: &mut Block, rows: &mut [u8; ROWS], key: IVec3) -> (usize, u8) {
         const N: usize = BLOCK_SIZE as usize;
+        let depth = &self.depth[..self.width * self.height];
+        if depth.is_empty() {
+            return (0, block_flags(rows));
+        }
         let vs = self.voxel_size_m;
         let origin = (key * BLOCK_SIZE).as_vec3() + Vec3::splat(0.5);
         let r = self.camera_from_world.rotation;
         let base = self.camera_from_world.transform_point(origin * vs);
         let (dx, dy, dz) = (r.x_axis * vs, r.y_axis * vs, r.z_axis * vs);
-        let (wf, hf) = (self.width as f32, self.height as f32);
-        let width = self.width as i32;
-        let depth = &self.depth[..self.width * self.height];
-        let usable = self.usable;
         let colour = self.colour;
-        let has_colour = colour.len() == depth.len() && !depth.is_empty();
-        let inv_trunc = 1.0 / self.trunc_m;
-        let neg_trunc = -self.trunc_m;
-        let cap_prev = self.weight_cap - 1.0;
-        // Pixel-centre rounding folded into the principal point.
-        let (cx, cy) = (self.cx + 0.5, self.cy + 0.5);
-        let (fx, fy) = (self.fx, self.fy);
-        let lane: [f32; N] = std::array::from_fn(|i| i as f32);
-        // `x + ROUND - ROUND` rounds `|x| < 2^22` to an integer; pixel indices of images under
-        // 2^22 pixels are then exact in f32.
-        const ROUND: f32 = 12_582_912.0;
-        let small_image = depth.len() < 1 << 22;
-        let (u_end, v_end) = (wf - 0.5, hf - 0.5);
+        let has_colour = colour.len() == depth.len();
+        let last = depth.len() - 1;
+        let splat = f32x8::splat;
+        let lane = f32x8::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
+        // Camera-space offsets of the 8 voxels of a row from its first.
+        let (lx, ly, lz) = (lane * dx.x, lane * dx.y, lane * dx.z);
+        let (fx, fy) = (splat(self.fx), splat(self.fy));
+        // `+ 0.5` folded in: the pixel nearest to `u` is `trunc(u + 0.5)` for `u >= -0.5`.
+        let (cx, cy) = (splat(self.cx + 0.5), splat(self.cy + 0.5));
+        let (u_end, v_end) = (splat(self.width as f32), splat(self.height as f32));
+        let width = i32x8::splat(self.width as i32);
+        let (zero, one) = (splat(0.0), splat(1.0));
+        // `d >= lo` with `lo > 0` also rejects zero and negative readings; NaN fails it.
+        let (lo, hi) = (splat(self.usable.lo.max(f32::MIN_POSITIVE)), splat(self.usable.hi));
+        let neg_trunc = splat(-self.trunc_m);
+        let inv_trunc = splat(1.0 / self.trunc_m);
+        let cap_prev = splat(self.weight_cap - 1.0);
+        let nan = splat(f32::NAN);
         let mut n = 0usize;
         let mut flags = 0u8;
-        if depth.is_empty() {
-            return (0, block_flags(rows));
-        }
         let planes = &mut *block.planes;
         for row_index in 0..ROWS {
             let (y, z) = (row_index % N, row_index / N);
             let p = base + dy * y as f32 + dz * z as f32;
-            // Projection of the row's voxel centres: pixel index (0 when outside, with
-            // `inside` false) and planar depth.
-            let mut pix = [0usize; N];
-            let mut zc = [0.0f32; N];
-            let mut inside = [false; N];
-            if small_image {
-                // Rounding by the 1.5 * 2^23 trick keeps the loop vectorisable (`as i32`
-                // saturates and is not); ties round to even instead of up, which only moves
-                // voxels projecting exactly onto a pixel border.
-                for i in 0..N {
-                    let pz = p.z + dx.z * lane[i];
-                    let px = p.x + dx.x * lane[i];
-                    let py = p.y + dx.y * lane[i];
-                    let iz = 1.0 / pz;
-                    let u = fx * px * iz + self.cx;
-                    let v = fy * py * iz + self.cy;
-                    let ok = (pz > 0.0) & (u >= -0.5) & (v >= -0.5) & (u < u_end) & (v < v_end);
-                    let (ur, vr) = ((u + ROUND) - ROUND, (v + ROUND) - ROUND);
-                    let at = ((vr * wf + ur) + ROUND).to_bits().wrapping_sub(ROUND.to_bits());
-                    pix[i] = if ok { at as usize } else { 0 };
-                    inside[i] = ok;
-                    zc[i] = pz;
-                }
-            } else {
-                for i in 0..N {
-                    let pz = p.z + dx.z * lane[i];
-                    let px = p.x + dx.x * lane[i];
-                    let py = p.y + dx.y * lane[i];
-                    let iz = 1.0 / pz;
-                    let u = fx * px * iz + cx;
-                    let v = fy * py * iz + cy;
-                    let ok = pz > 0.0 && u >= 0.0 && v >= 0.0 && u < wf && v < hf;
-                    // Truncation is floor here (u, v >= 0): the nearest pixel.
-                    let at = (v as i32).wrapping_mul(width).wrapping_add(u as i32);
-                    pix[i] = if ok { at as usize } else { 0 };
-                    inside[i] = ok;
-                    zc[i] = pz;
-                }
-            }
-            let mut sdf = [0.0f32; N];
-            let mut take = [false; N];
-            for i in 0..N {
-                let at = pix[i].min(depth.len() - 1);
-                sdf[i] = depth[at] - zc[i];
-                take[i] = inside[i] & usable.ok(depth[at]) & (sdf[i] >= neg_trunc);
-            }
-            if !take.iter().any(|&t| t) {
+            // Projection of the row's voxel centres, 8 lanes at once: pixel index (0 outside
+            // the image) and planar depth (NaN outside, so the take test fails).
+            let pz = splat(p.z) + lz;
+            let iz = one / pz;
+            let u = fx * (splat(p.x) + lx) * iz + cx;
+            let v = fy * (splat(p.y) + ly) * iz + cy;
+            let inside = pz.simd_gt(zero) & u.simd_ge(zero) & v.simd_ge(zero) & u.simd_lt(u_end) & v.simd_lt(v_end);
+            let at = (v.fast_trunc_int() * width + u.fast_trunc_int()) & cast::<f32x8, i32x8>(inside);
+            let at = at.to_array().map(|a| (a as usize).min(last));
+            let zc = inside.select(pz, nan);
+            let d = f32x8::new(at.map(|a| depth[a]));
+            let sdf = d - zc;
+            let take = sdf.simd_ge(neg_trunc) & d.simd_ge(lo) & d.simd_le(hi);
+            let bits = take.to_bitmask();
+            if bits == 0 {
                 flags |= rows[row_index];
                 continue;
             }
-            // Eight lanes at once: voxels that take no observation keep their values.
+            // The running averages; lanes that take no observation keep their values.
             let (tsdf, weight) = (&mut planes.tsdf[row_index], &mut planes.weight[row_index]);
-            let mut wp = [0.0f32; N];
-            let mut inv = [0.0f32; N];
-            for i in 0..N {
-                let obs = (sdf[i] * inv_trunc).min(1.0);
-                wp[i] = weight[i].min(cap_prev);
-                inv[i] = 1.0 / (wp[i] + 1.0);
-                let t = (tsdf[i] * wp[i] + obs) * inv[i];
-                tsdf[i] = if take[i] { t } else { tsdf[i] };
-                weight[i] = if take[i] { wp[i] + 1.0 } else { weight[i] };
-            }
+            let (t_old, w_old) = (f32x8::new(*tsdf), f32x8::new(*weight));
+            let obs = (sdf * inv_trunc).min(one);
+            let wp = w_old.min(cap_prev);
+            let inv = one / (wp + one);
+            let t_new = take.select((t_old * wp + obs) * inv, t_old);
+            let w_new = take.select(wp + one, w_old);
+            *tsdf = t_new.to_array();
+            *weight = w_new.to_array();
             if has_colour {
-                let mut c = [[0.0f32; N]; 3];
-                for i in 0..N {
-                    let rgb = colour[pix[i].min(depth.len() - 1)];
-                    for ch in 0..3 {
-                        c[ch][i] = rgb[ch];
-                    }
-                }
+                let rgb = at.map(|a| colour[a]);
                 for ch in 0..3 {
                     let plane = &mut planes.colour[ch][row_index];
-                    for i in 0..N {
-                        let mixed = (plane[i] * wp[i] + c[ch][i]) * inv[i];
-                        plane[i] = if take[i] { mixed } else { plane[i] };
-                    }
+                    let (old, c) = (f32x8::new(*plane), f32x8::new(std::array::from_fn(|i| rgb[i][ch])));
+                    *plane = take.select((old * wp + c) * inv, old).to_array();
                 }
             }
-            n += take.iter().filter(|&&t| t).count();
-            rows[row_index] = row_flags(tsdf, weight);
+            n += bits.count_ones() as usize;
+            let observed = w_new.simd_gt(zero).to_bitmask();
+            let negative = t_new.simd_lt(zero).to_bitmask();
+            rows[row_index] = ((observed & !negative != 0) as u8 * HAS_POSITIVE)
+                | ((observed & negative != 0) as u8 * HAS_NEGATIVE);
             flags |= rows[row_index];
         }
         (n, flags)
