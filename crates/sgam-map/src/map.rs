@@ -475,6 +475,13 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                                 }
                             }
                         }
+                        // A tube covers more blocks than its pixels' own segments do, and every
+                        // extra block costs a block update: only bins of at least 16 pixels
+                        // (on average) are worth a tube; otherwise walk the pixels.
+                        if bins.count_ones() > 1 && t.count < 16 * bins.count_ones() as usize {
+                            walk_pixels(us, vs, 0.0, f32::INFINITY, &mut insert);
+                            continue;
+                        }
                         while bins != 0 {
                             let b = bins.trailing_zeros();
                             bins &= bins - 1;
