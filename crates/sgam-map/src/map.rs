@@ -696,9 +696,15 @@ impl<'a> UpdateContext<'a> {
             let v = fy * (splat(p.y) + ly) * iz + cy;
             let inside = pz.simd_gt(zero) & u.simd_ge(zero) & v.simd_ge(zero) & u.simd_lt(u_end) & v.simd_lt(v_end);
             let at = (v.fast_trunc_int() * width + u.fast_trunc_int()) & cast::<f32x8, i32x8>(inside);
-            let at = at.to_array().map(|a| (a as usize).min(last));
+            let at = at.to_array();
+            let mut pix = [0usize; N];
+            let mut d = [0.0f32; N];
+            for i in 0..N {
+                pix[i] = (at[i] as usize).min(last);
+                d[i] = depth[pix[i]];
+            }
             let zc = inside.select(pz, nan);
-            let d = f32x8::new(at.map(|a| depth[a]));
+            let d = f32x8::new(d);
             let sdf = d - zc;
             let take = sdf.simd_ge(neg_trunc) & d.simd_ge(lo) & d.simd_le(hi);
             let bits = take.to_bitmask();
@@ -717,10 +723,16 @@ impl<'a> UpdateContext<'a> {
             *tsdf = t_new.to_array();
             *weight = w_new.to_array();
             if has_colour {
-                let rgb = at.map(|a| colour[a]);
+                let mut c = [[0.0f32; N]; 3];
+                for i in 0..N {
+                    let rgb = colour[pix[i]];
+                    for ch in 0..3 {
+                        c[ch][i] = rgb[ch];
+                    }
+                }
                 for ch in 0..3 {
                     let plane = &mut planes.colour[ch][row_index];
-                    let (old, c) = (f32x8::new(*plane), f32x8::new(std::array::from_fn(|i| rgb[i][ch])));
+                    let (old, c) = (f32x8::new(*plane), f32x8::new(c[ch]));
                     *plane = take.select((old * wp + c) * inv, old).to_array();
                 }
             }
