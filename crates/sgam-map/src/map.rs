@@ -14,6 +14,16 @@ use crate::TsdfConfig;
 /// box without visiting the whole map.
 pub(crate) const SUPER_SIZE: i32 = 8;
 
+/// "No block" in the neighbour tables.
+pub(crate) const NONE: u32 = u32::MAX;
+
+/// Offset of corner `o` (`0..8`) of the unit cube: `(o & 1, o >> 1 & 1, o >> 2)`.
+#[inline]
+pub(crate) fn corner_offset(o: usize) -> IVec3 {
+    let o = o as i32;
+    IVec3::new(o & 1, (o >> 1) & 1, o >> 2)
+}
+
 /// What one [`TsdfMap::integrate`] call did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct IntegrateStats {
@@ -52,6 +62,12 @@ pub struct TsdfMap {
     pub(crate) row_flags: Vec<[u8; ROWS]>,
     /// Super-block key -> ids of its blocks (ascending).
     pub(crate) super_index: FxHashMap<IVec3, Vec<u32>>,
+    /// Per block, the ids of the blocks at `key + offset(o)` / `key - offset(o)` for
+    /// `offset(o) = (o & 1, o >> 1 & 1, o >> 2)`, `o` in `1..8` (`NONE` where unallocated; entry
+    /// 0 is the block itself). Kept up to date by [`TsdfMap::allocate`], so meshing never
+    /// hashes.
+    pub(crate) upper: Vec<[u32; 8]>,
+    pub(crate) lower: Vec<[u32; 8]>,
     /// Weight threshold the cached block meshes were built with.
     pub(crate) mesh_weight_threshold: Option<f32>,
 }
@@ -71,6 +87,8 @@ impl TsdfMap {
             sign_flags: Vec::new(),
             row_flags: Vec::new(),
             super_index: FxHashMap::default(),
+            upper: Vec::new(),
+            lower: Vec::new(),
             mesh_weight_threshold: None,
         }
     }
@@ -132,6 +150,21 @@ impl TsdfMap {
         self.row_flags.push([0; ROWS]);
         let sk = IVec3::new(key.x.div_euclid(SUPER_SIZE), key.y.div_euclid(SUPER_SIZE), key.z.div_euclid(SUPER_SIZE));
         self.super_index.entry(sk).or_default().push(id);
+        let (mut upper, mut lower) = ([NONE; 8], [NONE; 8]);
+        (upper[0], lower[0]) = (id, id);
+        for o in 1..8 {
+            let off = corner_offset(o);
+            if let Some(&n) = self.index.get(&(key + off)) {
+                upper[o] = n;
+                self.lower[n as usize][o] = id;
+            }
+            if let Some(&n) = self.index.get(&(key - off)) {
+                lower[o] = n;
+                self.upper[n as usize][o] = id;
+            }
+        }
+        self.upper.push(upper);
+        self.lower.push(lower);
         (id, true)
     }
 
@@ -851,6 +884,23 @@ mod tests {
             let missing: Vec<_> = reference.difference(&got).collect();
             assert!(missing.is_empty(), "{} of {} blocks missed: {missing:?}", missing.len(), reference.len());
             assert!(got.len() <= reference.len() * 3 / 2, "{} vs {}", got.len(), reference.len());
+        }
+    }
+
+    #[test]
+    fn neighbour_tables_match_the_hash_index() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let mut map = TsdfMap::new(TsdfConfig::default());
+        for _ in 0..400 {
+            let k = IVec3::new(rng.random_range(-4..4), rng.random_range(-4..4), rng.random_range(-4..4));
+            map.allocate(k);
+        }
+        for (id, &k) in map.keys.iter().enumerate() {
+            for o in 0..8 {
+                let at = |key: IVec3| map.index.get(&key).copied().unwrap_or(NONE);
+                assert_eq!(map.upper[id][o], at(k + corner_offset(o)), "{k} + {o}");
+                assert_eq!(map.lower[id][o], at(k - corner_offset(o)), "{k} - {o}");
+            }
         }
     }
 

@@ -26,7 +26,7 @@ pub(crate) struct McTable {
 
 /// Start corner of edge `e`.
 #[inline]
-pub(crate) fn edge_start(e: usize) -> usize {
+pub(crate) const fn edge_start(e: usize) -> usize {
     let axis = e / 4;
     let j = e % 4;
     let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
@@ -35,7 +35,7 @@ pub(crate) fn edge_start(e: usize) -> usize {
 
 /// Axis (0 = x, 1 = y, 2 = z) of edge `e`.
 #[inline]
-pub(crate) fn edge_axis(e: usize) -> usize {
+pub(crate) const fn edge_axis(e: usize) -> usize {
     e / 4
 }
 

@@ -6,7 +6,7 @@ use rustc_hash::FxHashMap;
 use sgam_core::TriMesh;
 
 use crate::block::{local_index, Block, Voxel, BLOCK_SIZE};
-use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, SUPER_SIZE};
+use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
 use crate::mc_table::{edge_axis, edge_start, table};
 
 /// Global id of a mesh vertex: the marching-cubes edge from global voxel `g` to `g + e_axis`.
@@ -60,6 +60,17 @@ const CORNER_OFFSET: [usize; 8] = {
 };
 const AXIS_STRIDE: [usize; 3] = [1, GRID, GRID * GRID];
 
+/// Per marching-cubes edge: its axis and the gather-grid offset of its start corner.
+const EDGES: [(usize, usize); 12] = {
+    let mut t = [(0usize, 0usize); 12];
+    let mut e = 0;
+    while e < 12 {
+        t[e] = (edge_axis(e), CORNER_OFFSET[edge_start(e)]);
+        e += 1;
+    }
+    t
+};
+
 /// Per-thread working memory of [`TsdfMap::mesh_block`], reused across blocks.
 struct MeshScratch {
     /// Vertex index per (grid point, axis) edge; `u32::MAX` = none. All `MAX` between blocks.
@@ -98,13 +109,7 @@ impl TsdfMap {
         }
         let mut todo = Vec::with_capacity(self.dirty.len() * 2);
         for &id in &self.dirty {
-            let key = self.keys[id as usize];
-            for o in 0..8 {
-                let nk = key - IVec3::new(o & 1, (o >> 1) & 1, o >> 2);
-                if let Some(&nid) = self.index.get(&nk) {
-                    todo.push(nid);
-                }
-            }
+            todo.extend(self.lower[id as usize].iter().copied().filter(|&n| n != NONE));
         }
         for &id in &self.dirty {
             self.is_dirty[id as usize] = false;
@@ -252,18 +257,10 @@ impl TsdfMap {
     fn mesh_block(&self, id: u32, weight_threshold: f32, mesh: &mut BlockMesh, scratch: &mut MeshScratch) {
         mesh.clear();
         let key = self.keys[id as usize];
-        let mut flags = 0u8;
-        let mut ids = [u32::MAX; 8];
-        let neighbours: [Option<&Block>; 8] = std::array::from_fn(|o| {
-            let o = o as i32;
-            let nk = key + IVec3::new(o & 1, (o >> 1) & 1, o >> 2);
-            let nid = if o == 0 { Some(id) } else { self.index.get(&nk).copied() };
-            nid.map(|i| {
-                flags |= self.sign_flags[i as usize];
-                ids[o as usize] = i;
-                &self.blocks[i as usize]
-            })
-        });
+        let ids = self.upper[id as usize];
+        let flags = ids.iter().filter(|&&n| n != NONE).fold(0u8, |f, &n| f | self.sign_flags[n as usize]);
+        let neighbours: [Option<&Block>; 8] =
+            std::array::from_fn(|o| (ids[o] != NONE).then(|| &self.blocks[ids[o] as usize]));
         // No observed voxel on one side of the surface: no zero crossing (skip the gather).
         if flags != HAS_POSITIVE | HAS_NEGATIVE {
             return;
@@ -275,7 +272,7 @@ impl TsdfMap {
             for y in 0..GRID {
                 let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
                 let r = y % 8 + 8 * (z % 8);
-                let f = |o: usize| if ids[o] == u32::MAX { 0 } else { self.row_flags[ids[o] as usize][r] };
+                let f = |o: usize| if ids[o] == NONE { 0 } else { self.row_flags[ids[o] as usize][r] };
                 grid_flags[y + GRID * z] = f(oyz) | f(oyz | 1);
             }
         }
@@ -362,8 +359,8 @@ impl TsdfMap {
                         let mut idx = [0u32; 3];
                         for k in 0..3 {
                             let e = tri[k] as usize;
-                            let axis = edge_axis(e);
-                            let gi = base + CORNER_OFFSET[edge_start(e)];
+                            let (axis, start) = EDGES[e];
+                            let gi = base + start;
                             let slot = gi * 3 + axis;
                             if cache[slot] == u32::MAX {
                                 cache[slot] = out.positions.len() as u32;
