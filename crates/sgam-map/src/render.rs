@@ -87,6 +87,16 @@ struct ScreenTri {
     back: bool,
 }
 
+/// A mesh vertex seen by the camera: camera-space position, pixel position, and the pixel
+/// centres around it (`ceil` and `floor` of the pixel coordinates).
+#[derive(Debug, Clone, Copy)]
+struct ProjVertex {
+    c: Vec3,
+    s: Vec2,
+    ceil: [i32; 2],
+    floor: [i32; 2],
+}
+
 /// A ray hit: planar depth (metres, 0 = none) and colour.
 type Hit = (f32, [f32; 3]);
 
@@ -189,7 +199,7 @@ impl TsdfMap {
         camera: &Camera,
         near: f32,
         far: f32,
-        projected: &mut Vec<(Vec3, Vec2)>,
+        projected: &mut Vec<ProjVertex>,
         zb: &mut ZBuffer,
     ) {
         let m = &self.meshes[id as usize];
@@ -198,27 +208,31 @@ impl TsdfMap {
         projected.extend(m.positions.iter().map(|p| {
             let c = camera_from_world.transform_point(*p);
             let iz = 1.0 / c.z;
-            (c, Vec2::new(k.fx * c.x * iz + k.cx, k.fy * c.y * iz + k.cy))
+            let s = Vec2::new(k.fx * c.x * iz + k.cx, k.fy * c.y * iz + k.cy);
+            // the pixel-centre range a triangle's bounding box is built from, once per vertex
+            let ceil = [-floor_i32(-s.x), -floor_i32(-s.y)];
+            ProjVertex { c, s, ceil, floor: [floor_i32(s.x), floor_i32(s.y)] }
         }));
-        let (wf, hf) = (k.width as f32, k.height as f32);
+        let (w1, h1) = (k.width as i32 - 1, k.height as i32 - 1);
         for tri in &m.triangles {
             let [a, b, c] = tri.map(|i| projected[i as usize]);
-            if a.0.z < near || b.0.z < near || c.0.z < near {
+            if a.c.z < near || b.c.z < near || c.c.z < near {
                 continue;
             }
-            let (lo, hi) = (a.1.min(b.1).min(c.1), a.1.max(b.1).max(c.1));
             // Pixel centres inside the bounding box (none for most sub-pixel triangles).
-            let (x0, x1) = ((-floor_i32(-lo.x)).max(0) as f32, (floor_i32(hi.x) as f32).min(wf - 1.0));
-            let (y0, y1) = ((-floor_i32(-lo.y)).max(0) as f32, (floor_i32(hi.y) as f32).min(hf - 1.0));
+            let x0 = a.ceil[0].min(b.ceil[0]).min(c.ceil[0]).max(0);
+            let x1 = a.floor[0].max(b.floor[0]).max(c.floor[0]).min(w1);
+            let y0 = a.ceil[1].min(b.ceil[1]).min(c.ceil[1]).max(0);
+            let y1 = a.floor[1].max(b.floor[1]).max(c.floor[1]).min(h1);
             if x1 < x0 || y1 < y0 {
                 continue;
             }
-            let normal = (b.0 - a.0).cross(c.0 - a.0);
+            let normal = (b.c - a.c).cross(c.c - a.c);
             let t = ScreenTri {
-                p: [a.1, b.1, c.1],
-                inv_z: [1.0 / a.0.z, 1.0 / b.0.z, 1.0 / c.0.z],
+                p: [a.s, b.s, c.s],
+                inv_z: [1.0 / a.c.z, 1.0 / b.c.z, 1.0 / c.c.z],
                 col: tri.map(|i| Vec3::from_array(m.colours[i as usize])),
-                back: normal.dot(a.0) > 0.0,
+                back: normal.dot(a.c) > 0.0,
             };
             raster_tri(&t, [x0 as usize, x1 as usize, y0 as usize, y1 as usize], far, zb);
         }
