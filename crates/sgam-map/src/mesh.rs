@@ -107,16 +107,20 @@ impl TsdfMap {
         if self.dirty.is_empty() {
             return 0;
         }
-        let mut todo = Vec::with_capacity(self.dirty.len() * 2);
-        for &id in &self.dirty {
-            todo.extend(self.lower[id as usize].iter().copied().filter(|&n| n != NONE));
+        // The dirty blocks and their lower neighbours, each once (`is_dirty` marks what is
+        // queued; no sort).
+        let mut todo = std::mem::take(&mut self.dirty);
+        for i in 0..todo.len() {
+            for &n in &self.lower[todo[i] as usize][1..] {
+                if n != NONE && !self.is_dirty[n as usize] {
+                    self.is_dirty[n as usize] = true;
+                    todo.push(n);
+                }
+            }
         }
-        for &id in &self.dirty {
+        for &id in &todo {
             self.is_dirty[id as usize] = false;
         }
-        self.dirty.clear();
-        todo.sort_unstable();
-        todo.dedup();
         // Re-mesh into the blocks' own buffers (taken out, refilled, put back): no allocation
         // once a block's buffers have grown.
         let mut meshes: Vec<BlockMesh> = todo.iter().map(|&id| std::mem::take(&mut self.meshes[id as usize])).collect();
