@@ -5,8 +5,8 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 use sgam_core::TriMesh;
 
-use crate::block::{local_index, Block, Voxel, BLOCK_SIZE};
-use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
+use crate::block::{Block, Voxel, BLOCK_SIZE};
+use crate::map::{corner_offset, TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
 use crate::mc_table::{edge_axis, edge_start, table};
 
 /// Global id of a mesh vertex: the marching-cubes edge from global voxel `g` to `g + e_axis`.
@@ -58,7 +58,6 @@ const CORNER_OFFSET: [usize; 8] = {
     }
     o
 };
-const AXIS_STRIDE: [usize; 3] = [1, GRID, GRID * GRID];
 
 /// Per marching-cubes edge: its axis and the gather-grid offset of its start corner.
 const EDGES: [(usize, usize); 12] = {
@@ -326,12 +325,14 @@ impl TsdfMap {
                 neg_rows[y + GRID * z] = neg;
             }
         }
-        let voxel_at = |gi: usize| -> Voxel {
-            let (x, y, z) = (gi % GRID, gi / GRID % GRID, gi / (GRID * GRID));
-            let o = (x == GRID - 1) as usize | ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
-            neighbours[o]
-                .map(|b| b.voxel(local_index((x % 8) as i32, (y % 8) as i32, (z % 8) as i32)))
-                .unwrap_or(Voxel::EMPTY)
+        // Grid point `l` (each coordinate in 0..=8): tsdf and colour, from this block or a
+        // +x/+y/+z neighbour.
+        let voxel_at = |l: IVec3| -> (f32, [f32; 3]) {
+            let o = (l.x >> 3 | (l.y >> 3) << 1 | (l.z >> 3) << 2) as usize;
+            let Some(b) = neighbours[o] else { return (Voxel::EMPTY.tsdf, Voxel::EMPTY.colour) };
+            let (r, x) = (((l.y & 7) + 8 * (l.z & 7)) as usize, (l.x & 7) as usize);
+            let p = &b.planes;
+            (p.tsdf[r][x], [p.colour[0][r][x], p.colour[1][r][x], p.colour[2][r][x]])
         };
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
@@ -353,33 +354,28 @@ impl TsdfMap {
                 while crossing != 0 {
                     let x = crossing.trailing_zeros() as usize;
                     crossing &= crossing - 1;
+                    let cell = IVec3::new(x as i32, y as i32, z as i32);
                     let base = x + GRID * (y + GRID * z);
-                    let mut case = 0usize;
-                    for c in 0..8 {
-                        let (dx, row) = (c & 1, c >> 1);
-                        case |= (((n[row] >> (x + dx)) & 1) as usize) << c;
-                    }
+                    // corner c = dx + 2 row: bit x + dx of row `row`
+                    let case = (0..4).fold(0usize, |a, r| a | (((n[r] >> x) & 3) as usize) << (2 * r));
                     for tri in &cases[case] {
                         let mut idx = [0u32; 3];
                         for k in 0..3 {
                             let e = tri[k] as usize;
                             let (axis, start) = EDGES[e];
-                            let gi = base + start;
-                            let slot = gi * 3 + axis;
+                            let slot = (base + start) * 3 + axis;
                             if cache[slot] == u32::MAX {
                                 cache[slot] = out.positions.len() as u32;
                                 used.push(slot as u16);
-                                let (v0, v1) = (voxel_at(gi), voxel_at(gi + AXIS_STRIDE[axis]));
-                                let t = v0.tsdf / (v0.tsdf - v1.tsdf);
-                                let local = IVec3::new(
-                                    (gi % GRID) as i32,
-                                    (gi / GRID % GRID) as i32,
-                                    (gi / (GRID * GRID)) as i32,
-                                );
+                                let local = cell + corner_offset(edge_start(e));
+                                let mut step = IVec3::ZERO;
+                                step[axis] = 1;
+                                let ((t0, c0), (t1, c1)) = (voxel_at(local), voxel_at(local + step));
+                                let t = t0 / (t0 - t1);
                                 let g = origin + local;
                                 let mut p = (g.as_vec3() + Vec3::splat(0.5)) * vs;
                                 p[axis] += t * vs;
-                                let c = std::array::from_fn(|ch| v0.colour[ch] + t * (v1.colour[ch] - v0.colour[ch]));
+                                let c = std::array::from_fn(|ch| c0[ch] + t * (c1[ch] - c0[ch]));
                                 out.positions.push(p);
                                 out.colours.push(c);
                                 out.edge_keys.push((g, axis as u8));
