@@ -110,7 +110,10 @@ impl TsdfMap {
             + std::mem::size_of::<IVec3>() * 2
             + std::mem::size_of::<u32>() * 2
             + std::mem::size_of::<BlockMesh>()
-            + std::mem::size_of::<bool>();
+            + std::mem::size_of::<bool>()
+            + std::mem::size_of::<[u32; 8]>() * 2
+            + std::mem::size_of::<[u8; ROWS]>()
+            + 1;
         let meshes: usize = self.meshes.iter().map(BlockMesh::heap_bytes).sum();
         self.blocks.capacity().max(self.blocks.len()) * per_block + meshes + self.super_index.len() * 64
     }
