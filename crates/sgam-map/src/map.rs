@@ -215,13 +215,18 @@ impl TsdfMap {
         let (keys, pixels_used) = touched_blocks(depth, w, h, camera, &cfg);
         stats.pixels_used = pixels_used;
         stats.blocks_touched = keys.len();
-        let mut ids = Vec::with_capacity(keys.len());
-        for &k in &keys {
-            let (id, new) = self.allocate(k);
-            stats.blocks_allocated += new as usize;
-            ids.push(id);
+        // Existing blocks are looked up in parallel; new keys are allocated in sorted order (ids
+        // do not depend on the hash set's iteration order).
+        let index = &self.index;
+        let found: Vec<Option<u32>> = keys.par_iter().map(|k| index.get(k).copied()).collect();
+        let mut new_keys: Vec<IVec3> = keys.iter().zip(&found).filter(|(_, f)| f.is_none()).map(|(k, _)| *k).collect();
+        new_keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
+        let mut ids: Vec<u32> = found.into_iter().flatten().collect();
+        for k in new_keys {
+            ids.push(self.allocate(k).0);
+            stats.blocks_allocated += 1;
         }
-        ids.sort_unstable();
+        ids.par_sort_unstable();
         let camera_from_world = camera.world_from_camera.inverse();
         let ctx = UpdateContext::new(depth, frame, camera, &camera_from_world, &cfg);
         let updated: Vec<(u32, usize, u8)> = {
@@ -232,12 +237,12 @@ impl TsdfMap {
             // that the frame's depth and colour pixels read by consecutive blocks are cache-warm
             // and each thread's share covers one part of the image.
             let mut work: Vec<(u64, &mut Block, &mut [u8; ROWS], u32)> = blocks
-                .into_iter()
+                .into_par_iter()
                 .zip(rows)
                 .zip(&ids)
                 .map(|((b, r), &id)| (ctx.image_order(keys_of[id as usize], &cfg), b, r, id))
                 .collect();
-            work.sort_unstable_by_key(|w| w.0);
+            work.par_sort_unstable_by_key(|w| w.0);
             work.into_par_iter()
                 .map(|(_, block, rows, id)| {
                     let (n, flags) = ctx.update_block(block, rows, keys_of[id as usize]);
@@ -340,7 +345,7 @@ impl TileStats {
     }
 }
 
-/// The block keys crossed by every usable pixel's truncation band, sorted, plus the number of
+/// The block keys crossed by every usable pixel's truncation band (any order), plus the number of
 /// usable pixels ([`Usable`]). `depth` is the frame's, `w x h`.
 ///
 /// Pixels are handled in tiles. In a tile whose usable depths span at most the truncation
@@ -541,9 +546,7 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                 (big, na + nb)
             },
         );
-    let mut keys: Vec<IVec3> = set.into_iter().collect();
-    keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
-    (keys, used)
+    (set.into_iter().collect(), used)
 }
 
 /// Visits every unit grid cell crossed by the segment `a -> b` (grid units), in order
