@@ -169,25 +169,35 @@ impl TsdfMap {
                 zb
             })
             .collect();
-        let mut buffers = buffers.into_iter();
-        let Some(mut zb) = buffers.next() else { return out };
-        for other in buffers {
-            for i in 0..w * h {
-                if other.inv_z[i] > zb.inv_z[i] {
-                    zb.inv_z[i] = other.inv_z[i];
-                    zb.colour[i] = other.colour[i];
-                    zb.back[i] = other.back[i];
+        if buffers.is_empty() {
+            return out;
+        }
+        // Merge (nearest wins; on exact ties the earlier chunk) and resolve, in parallel over rows.
+        let rows = w.max(1);
+        out.depth_m
+            .data
+            .par_chunks_mut(rows)
+            .zip(out.colour.data.par_chunks_mut(rows))
+            .zip(out.covered.par_chunks_mut(rows))
+            .zip(out.back_facing.par_chunks_mut(rows))
+            .enumerate()
+            .for_each(|(v, (((depth, colour), covered), back))| {
+                for u in 0..depth.len() {
+                    let i = v * w + u;
+                    let mut best = &buffers[0];
+                    for b in &buffers[1..] {
+                        if b.inv_z[i] > best.inv_z[i] {
+                            best = b;
+                        }
+                    }
+                    if best.inv_z[i] > 0.0 {
+                        depth[u] = 1.0 / best.inv_z[i];
+                        colour[u] = best.colour[i];
+                        covered[u] = true;
+                        back[u] = best.back[i];
+                    }
                 }
-            }
-        }
-        for i in 0..w * h {
-            if zb.inv_z[i] > 0.0 {
-                out.depth_m.data[i] = 1.0 / zb.inv_z[i];
-                out.colour.data[i] = zb.colour[i];
-                out.covered[i] = true;
-                out.back_facing[i] = zb.back[i];
-            }
-        }
+            });
         out
     }
 
