@@ -462,7 +462,11 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                             let d = depth[v * w + u];
                             if usable.ok(d) && d >= lo && d <= hi {
                                 let dir = ray(u as f32, v as f32);
-                                walk_cells(origin + dir * (d - trunc).max(0.0), origin + dir * (d + trunc), &mut *insert);
+                                walk_cells(
+                                    origin + dir * (d - trunc).max(0.0),
+                                    origin + dir * (d + trunc),
+                                    &mut *insert,
+                                );
                             }
                         }
                     }
@@ -778,8 +782,8 @@ impl<'a> UpdateContext<'a> {
             n += bits.count_ones() as usize;
             let observed = w_new.simd_gt(zero).to_bitmask();
             let negative = t_new.simd_lt(zero).to_bitmask();
-            rows[row_index] = ((observed & !negative != 0) as u8 * HAS_POSITIVE)
-                | ((observed & negative != 0) as u8 * HAS_NEGATIVE);
+            rows[row_index] =
+                ((observed & !negative != 0) as u8 * HAS_POSITIVE) | ((observed & negative != 0) as u8 * HAS_NEGATIVE);
             flags |= rows[row_index];
         }
         (n, flags)

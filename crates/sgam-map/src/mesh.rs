@@ -82,11 +82,7 @@ struct MeshScratch {
 
 impl MeshScratch {
     fn new() -> Self {
-        Self {
-            cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]),
-            used: Vec::new(),
-            out: BlockMesh::default(),
-        }
+        Self { cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]), used: Vec::new(), out: BlockMesh::default() }
     }
 }
 
