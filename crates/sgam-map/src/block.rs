@@ -114,7 +114,8 @@ pub fn voxel_in_block(g: IVec3) -> IVec3 {
 #[inline(always)]
 pub(crate) fn floor_i32(x: f32) -> i32 {
     let i = x as i32;
-    i - ((i as f32) > x) as i32
+    // saturating: below `i32::MIN` (e.g. -inf) `i` is already `i32::MIN`
+    i.saturating_sub(((i as f32) > x) as i32)
 }
 
 /// Component-wise [`floor_i32`].

@@ -36,4 +36,8 @@ pub enum MapError {
     /// A configuration value is out of range.
     #[error("invalid map configuration: {0}")]
     InvalidConfig(String),
+    /// The stream is well formed but holds values no map can contain (a block key outside the
+    /// supported range, a non-finite voxel).
+    #[error("invalid map content: {0}")]
+    InvalidContent(String),
 }

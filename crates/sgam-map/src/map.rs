@@ -157,11 +157,11 @@ impl TsdfMap {
         (upper[0], lower[0]) = (id, id);
         for o in 1..8 {
             let off = corner_offset(o);
-            if let Some(&n) = self.index.get(&(key + off)) {
+            if let Some(&n) = self.index.get(&key.wrapping_add(off)) {
                 upper[o] = n;
                 self.lower[n as usize][o] = id;
             }
-            if let Some(&n) = self.index.get(&(key - off)) {
+            if let Some(&n) = self.index.get(&key.wrapping_sub(off)) {
                 lower[o] = n;
                 self.upper[n as usize][o] = id;
             }
@@ -279,9 +279,10 @@ fn disjoint_mut<'a, T>(blocks: &'a mut [T], ids: &[u32]) -> Vec<&'a mut T> {
     out
 }
 
-/// Which depth readings integrate: valid (finite, positive) and inside the depth range. NaN,
-/// infinities, zero and out-of-range readings all fail the one comparison chain (vectorisable),
-/// so the frame's depth is read as it is, without a cleaned copy.
+/// Which depth readings integrate: valid (finite, positive) and inside the depth range. With
+/// `lo >= f32::MIN_POSITIVE` and `hi <= f32::MAX`, NaN, infinities, zero, subnormal, negative and
+/// out-of-range readings all fail the two comparisons (vectorisable), so the frame's depth is
+/// read as it is, without a cleaned copy.
 #[derive(Debug, Clone, Copy)]
 struct Usable {
     lo: f32,
@@ -290,12 +291,12 @@ struct Usable {
 
 impl Usable {
     fn new(cfg: &TsdfConfig) -> Self {
-        Self { lo: cfg.depth_min_m, hi: cfg.depth_max_m }
+        Self { lo: cfg.depth_min_m.max(f32::MIN_POSITIVE), hi: cfg.depth_max_m.min(f32::MAX) }
     }
 
     #[inline(always)]
     fn ok(self, d: f32) -> bool {
-        (d > 0.0) & (d >= self.lo) & (d <= self.hi)
+        (d >= self.lo) & (d <= self.hi)
     }
 }
 
@@ -357,7 +358,9 @@ impl TileStats {
 /// Either way every block a tile pixel's band crosses is allocated. Tiles are `2s x 2s` pixels
 /// when their own far end allows it (near surfaces), else `s x s` with `s` chosen for the
 /// depth range's far end. A tile whose depths span more (a depth edge, a slanted surface) is
-/// covered by one tube per occupied truncation-wide depth bin.
+/// covered by one tube per occupied truncation-wide depth bin when its bins average 16 pixels or
+/// more. Every pixel's own segment is walked instead where there is no tiling (`s = 1`), where
+/// bins hold fewer pixels, and where a tube would need more than 64 cells.
 fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let trunc = cfg.trunc_m();
     let usable = Usable::new(cfg);
@@ -450,17 +453,16 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         false
                     }
                 };
-                // Walks the own band segment of every pixel of the rectangle with depth in
-                // `lo ..= hi`.
+                // Walks the own band segment of every usable pixel of the rectangle whose depth
+                // passes `select`.
                 let walk_pixels = |(u0, u1): (usize, usize),
                                    (v0, v1): (usize, usize),
-                                   lo: f32,
-                                   hi: f32,
+                                   select: &dyn Fn(f32) -> bool,
                                    insert: &mut dyn FnMut(IVec3)| {
                     for v in v0..v1 {
                         for u in u0..u1 {
                             let d = depth[v * w + u];
-                            if usable.ok(d) && d >= lo && d <= hi {
+                            if usable.ok(d) && select(d) {
                                 let dir = ray(u as f32, v as f32);
                                 walk_cells(
                                     origin + dir * (d - trunc).max(0.0),
@@ -503,7 +505,7 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                             continue;
                         }
                         if tile == 1 {
-                            walk_pixels(us, vs, 0.0, f32::INFINITY, &mut insert);
+                            walk_pixels(us, vs, &|_| true, &mut insert);
                             continue;
                         }
                         // Bin the tile's depths by truncation-wide bins from its nearest one (the
@@ -515,6 +517,7 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                             let inv_trunc = 1.0 / trunc;
                             for v in vs.0..vs.1 {
                                 for &d in &depth[v * w + us.0..v * w + us.1] {
+                                    // (the same binning as `bin_of` below)
                                     let b = ((d - t.min) * inv_trunc).clamp(0.0, 63.0) as u32;
                                     bins |= (usable.ok(d) as u64) << b;
                                 }
@@ -524,17 +527,21 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         // extra block costs a block update: only bins of at least 16 pixels
                         // (on average) are worth a tube; otherwise walk the pixels.
                         if bins.count_ones() > 1 && t.count < 16 * bins.count_ones() as usize {
-                            walk_pixels(us, vs, 0.0, f32::INFINITY, &mut insert);
+                            walk_pixels(us, vs, &|_| true, &mut insert);
                             continue;
                         }
+                        let inv_trunc = 1.0 / trunc;
+                        let bin_of = |d: f32| ((d - t.min) * inv_trunc).clamp(0.0, 63.0) as u32;
+                        // A depth on a bin border may round into either bin: widen each tube by
+                        // a hair (more than the rounding of `t.min + b * trunc` at this depth).
+                        let hair = 1e-3 * trunc + 1e-6 * t.max;
                         while bins != 0 {
                             let b = bins.trailing_zeros();
                             bins &= bins - 1;
-                            // (widened by a hair: a depth on a bin border may round into either)
-                            let lo = t.min + b as f32 * trunc - 1e-3 * trunc;
-                            let hi = if bins == 0 { t.max } else { t.min + (b + 1) as f32 * trunc + 1e-3 * trunc };
+                            let lo = t.min + b as f32 * trunc - hair;
+                            let hi = if bins == 0 { t.max } else { t.min + (b + 1) as f32 * trunc + hair };
                             if !cover_tube(us, vs, (lo - trunc).max(0.0), hi + trunc, &mut insert) {
-                                walk_pixels(us, vs, lo, hi, &mut insert);
+                                walk_pixels(us, vs, &|d| bin_of(d) == b, &mut insert);
                             }
                         }
                     }
@@ -719,8 +726,7 @@ impl<'a> UpdateContext<'a> {
         let (u_end, v_end) = (splat(self.width as f32), splat(self.height as f32));
         let width = i32x8::splat(self.width as i32);
         let (zero, one) = (splat(0.0), splat(1.0));
-        // `d >= lo` with `lo > 0` also rejects zero and negative readings; NaN fails it.
-        let (lo, hi) = (splat(self.usable.lo.max(f32::MIN_POSITIVE)), splat(self.usable.hi));
+        let (lo, hi) = (splat(self.usable.lo), splat(self.usable.hi));
         let neg_trunc = splat(-self.trunc_m);
         let inv_trunc = splat(1.0 / self.trunc_m);
         let cap_prev = splat(self.weight_cap - 1.0);

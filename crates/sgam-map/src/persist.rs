@@ -23,6 +23,9 @@ const MAGIC: &[u8; 8] = b"SGAMTSDF";
 const VERSION: u32 = 1;
 const HEADER_BYTES: usize = 8 + 4 + 21 + 8;
 const BLOCK_BYTES: usize = 12 + BLOCK_VOXELS * 20;
+/// Largest block-key coordinate a loaded map may hold: voxel indices (`8 key`) and neighbour
+/// keys stay far from `i32` overflow (2^28 blocks is ~10^7 km at 5 cm voxels).
+const MAX_BLOCK_KEY: i32 = 1 << 28;
 
 impl TsdfMap {
     /// Writes the map in the versioned binary format described in this module (blocks sorted
@@ -116,6 +119,9 @@ impl TsdfMap {
         let mut map = TsdfMap::new(config);
         for _ in 0..count {
             let key = IVec3::new(cur.i32()?, cur.i32()?, cur.i32()?);
+            if key.abs().max_element() > MAX_BLOCK_KEY {
+                return Err(MapError::InvalidContent(format!("block key {key} outside +-{MAX_BLOCK_KEY}")));
+            }
             let (id, new) = map.allocate(key);
             if !new {
                 return Err(MapError::Truncated(format!("duplicate block key {key}")));
@@ -124,6 +130,9 @@ impl TsdfMap {
             for i in 0..BLOCK_VOXELS {
                 let (tsdf, weight) = (cur.f32()?, cur.f32()?);
                 let colour = [cur.f32()?, cur.f32()?, cur.f32()?];
+                if !(tsdf.is_finite() && weight.is_finite() && colour.iter().all(|c| c.is_finite())) {
+                    return Err(MapError::InvalidContent(format!("block {key}, voxel {i}: non-finite value")));
+                }
                 block.set_voxel(i, Voxel { tsdf, weight, colour });
             }
             map.blocks[id as usize] = block;

@@ -123,8 +123,9 @@ impl TsdfMap {
     /// Back faces are **not** culled: a surface seen from behind still occludes what lies
     /// beyond it (the TSDF says the space behind an observed surface is occupied), and the
     /// nearest hit wins either way; such pixels are flagged in [`Rendered::back_facing`].
-    /// Rows are split into bands rasterized in parallel; triangles are drawn in a fixed order
-    /// so the result is deterministic.
+    /// Blocks are split into contiguous chunks rasterized in parallel, each into its own
+    /// z-buffer; the merge keeps the nearest hit and, on exact ties, the earlier chunk, so the
+    /// result is deterministic whatever the number of threads.
     pub fn render(&mut self, camera: &Camera) -> Rendered {
         let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
         self.update_mesh(threshold);
@@ -219,9 +220,12 @@ impl TsdfMap {
             let c = camera_from_world.transform_point(*p);
             let iz = 1.0 / c.z;
             let s = Vec2::new(k.fx * c.x * iz + k.cx, k.fy * c.y * iz + k.cy);
-            // the pixel-centre range a triangle's bounding box is built from, once per vertex
-            let ceil = [-floor_i32(-s.x), -floor_i32(-s.y)];
-            ProjVertex { c, s, ceil, floor: [floor_i32(s.x), floor_i32(s.y)] }
+            // The pixel-centre range a triangle's bounding box is built from, once per vertex
+            // (clamped: vertices at or behind the camera plane project to infinities; their
+            // triangles are dropped by the near test below).
+            let q = s.clamp(Vec2::splat(-1.0e9), Vec2::splat(1.0e9));
+            let ceil = [-floor_i32(-q.x), -floor_i32(-q.y)];
+            ProjVertex { c, s, ceil, floor: [floor_i32(q.x), floor_i32(q.y)] }
         }));
         let (w1, h1) = (k.width as i32 - 1, k.height as i32 - 1);
         for tri in &m.triangles {

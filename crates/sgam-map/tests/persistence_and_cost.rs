@@ -73,6 +73,23 @@ fn corrupt_streams_are_errors() {
     let mut longer = bytes.clone();
     longer.push(0);
     assert!(TsdfMap::read_from(&mut longer.as_slice()).is_err());
+    // Well-formed streams (valid checksum) holding values no map can contain: a block key near
+    // the i32 limit, a NaN tsdf.
+    let header = 8 + 4 + 21 + 8;
+    let resealed = |mut b: Vec<u8>| {
+        let body = b.len() - 4;
+        let crc = crc32fast::hash(&b[..body]);
+        b[body..].copy_from_slice(&crc.to_le_bytes());
+        b
+    };
+    let mut key = bytes.clone();
+    key[header..header + 4].copy_from_slice(&i32::MAX.to_le_bytes());
+    let err = TsdfMap::read_from(&mut resealed(key).as_slice()).unwrap_err();
+    assert!(matches!(err, MapError::InvalidContent(_)) && err.to_string().contains("block key"), "{err}");
+    let mut nan = bytes.clone();
+    nan[header + 12..header + 16].copy_from_slice(&f32::NAN.to_le_bytes());
+    let err = TsdfMap::read_from(&mut resealed(nan).as_slice()).unwrap_err();
+    assert!(matches!(err, MapError::InvalidContent(_)) && err.to_string().contains("non-finite"), "{err}");
 }
 
 #[test]

@@ -124,3 +124,29 @@ fn back_faces_occlude_and_are_flagged() {
     let r = map.render(&outside);
     assert!(r.covered.iter().zip(&r.back_facing).all(|(c, b)| !(*c && *b)), "front view hits a back face");
 }
+
+#[test]
+fn cameras_in_the_middle_of_the_map_render_without_panicking() {
+    // Mesh vertices at or just behind the camera plane project to huge or infinite pixel
+    // coordinates; those triangles are dropped, the rest render normally.
+    let map = {
+        let mut m = fused(0.04);
+        m.update_mesh(1.0);
+        m
+    };
+    let mesh = map.clone().extract_mesh(1.0);
+    let vertex = mesh.positions[mesh.positions.len() / 2];
+    for (eye, target) in [
+        (Vec3::new(0.0, 0.0, 1e-4), Vec3::new(1.0, 0.0, 1e-4)), // grazing the ground plane
+        (vertex, vertex + Vec3::X),                             // at a mesh vertex, along an axis
+        (vertex, vertex + Vec3::new(0.3, 0.2, 0.1)),            // at a mesh vertex
+        (Vec3::new(0.3, -0.2, 0.25), Vec3::new(0.3, 0.8, 0.25)), // inside the sphere
+    ] {
+        let cam = camera(eye, target, 64, 48, 50.0);
+        let r = map.rasterize(&cam);
+        for (d, c) in r.depth_m.data.iter().zip(&r.covered) {
+            assert_eq!(*c, *d > 0.0);
+            assert!(d.is_finite() && *d >= 0.0);
+        }
+    }
+}
