@@ -228,7 +228,7 @@ impl TsdfMap {
         }
         ids.par_sort_unstable();
         let camera_from_world = camera.world_from_camera.inverse();
-        let ctx = UpdateContext::new(depth, frame, camera, &camera_from_world, &cfg);
+        let ctx = UpdateContext::new(frame, camera, &camera_from_world, &cfg);
         let updated: Vec<(u32, usize, u8)> = {
             let blocks = disjoint_mut(&mut self.blocks, &ids);
             let rows = disjoint_mut(&mut self.row_flags, &ids);
@@ -240,7 +240,7 @@ impl TsdfMap {
                 .into_par_iter()
                 .zip(rows)
                 .zip(&ids)
-                .map(|((b, r), &id)| (ctx.image_order(keys_of[id as usize], &cfg), b, r, id))
+                .map(|((b, r), &id)| (ctx.image_order(keys_of[id as usize]), b, r, id))
                 .collect();
             work.par_sort_unstable_by_key(|w| w.0);
             work.into_par_iter()
@@ -363,6 +363,7 @@ impl TileStats {
 /// bins hold fewer pixels, and where a tube would need more than 64 cells.
 fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let trunc = cfg.trunc_m();
+    let inv_trunc = 1.0 / trunc;
     let usable = Usable::new(cfg);
     let inv_block = 1.0 / cfg.block_size_m();
     let k = camera.intrinsics;
@@ -512,14 +513,12 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         // last bin takes the rest): each occupied bin's pixels lie in the tube of
                         // the tile's corner rays over the bin's range. A depth edge occupies two
                         // or three bins.
+                        let bin_of = |d: f32| ((d - t.min) * inv_trunc).clamp(0.0, 63.0) as u32;
                         let mut bins = 1u64;
                         if t.max - t.min > trunc {
-                            let inv_trunc = 1.0 / trunc;
                             for v in vs.0..vs.1 {
                                 for &d in &depth[v * w + us.0..v * w + us.1] {
-                                    // (the same binning as `bin_of` below)
-                                    let b = ((d - t.min) * inv_trunc).clamp(0.0, 63.0) as u32;
-                                    bins |= (usable.ok(d) as u64) << b;
+                                    bins |= (usable.ok(d) as u64) << bin_of(d);
                                 }
                             }
                         }
@@ -530,8 +529,6 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                             walk_pixels(us, vs, &|_| true, &mut insert);
                             continue;
                         }
-                        let inv_trunc = 1.0 / trunc;
-                        let bin_of = |d: f32| ((d - t.min) * inv_trunc).clamp(0.0, 63.0) as u32;
                         // A depth on a bin border may round into either bin: widen each tube by
                         // a hair (more than the rounding of `t.min + b * trunc` at this depth).
                         let hair = 1e-3 * trunc + 1e-6 * t.max;
@@ -644,18 +641,12 @@ pub(crate) const HAS_POSITIVE: u8 = 1;
 pub(crate) const HAS_NEGATIVE: u8 = 2;
 
 impl<'a> UpdateContext<'a> {
-    fn new(
-        depth: &'a [f32],
-        frame: &'a RgbdFrame,
-        camera: &'a Camera,
-        camera_from_world: &Rigid3,
-        cfg: &TsdfConfig,
-    ) -> Self {
+    fn new(frame: &'a RgbdFrame, camera: &'a Camera, camera_from_world: &Rigid3, cfg: &TsdfConfig) -> Self {
         let k = camera.intrinsics;
         let (width, height) = (frame.depth_m.width as usize, frame.depth_m.height as usize);
         let colour_ok = frame.colour.data.len() == width * height;
         Self {
-            depth,
+            depth: &frame.depth_m.data,
             usable: Usable::new(cfg),
             colour: if colour_ok { &frame.colour.data } else { &[] },
             width,
@@ -673,8 +664,8 @@ impl<'a> UpdateContext<'a> {
 
     /// Sort key of block `key` in image order: the Morton code of the 16-pixel tile its centre
     /// projects into (`u64::MAX` behind the camera).
-    fn image_order(&self, key: IVec3, cfg: &TsdfConfig) -> u64 {
-        let centre = (key.as_vec3() + Vec3::splat(0.5)) * cfg.block_size_m();
+    fn image_order(&self, key: IVec3) -> u64 {
+        let centre = (key.as_vec3() + Vec3::splat(0.5)) * (self.voxel_size_m * BLOCK_SIZE as f32);
         let p = self.camera_from_world.transform_point(centre);
         if p.z.is_nan() || p.z <= 0.0 {
             return u64::MAX;
@@ -786,10 +777,7 @@ impl<'a> UpdateContext<'a> {
                 }
             }
             n += bits.count_ones() as usize;
-            let observed = w_new.simd_gt(zero).to_bitmask();
-            let negative = t_new.simd_lt(zero).to_bitmask();
-            rows[row_index] =
-                ((observed & !negative != 0) as u8 * HAS_POSITIVE) | ((observed & negative != 0) as u8 * HAS_NEGATIVE);
+            rows[row_index] = row_flags(t_new, w_new);
             flags |= rows[row_index];
         }
         (n, flags)
@@ -804,18 +792,17 @@ fn block_flags(rows: &[u8; ROWS]) -> u8 {
 /// The sign summaries ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's voxel rows.
 fn row_flags_of(block: &Block) -> [u8; ROWS] {
     let p = &block.planes;
-    std::array::from_fn(|r| row_flags(&p.tsdf[r], &p.weight[r]))
+    std::array::from_fn(|r| row_flags(f32x8::new(p.tsdf[r]), f32x8::new(p.weight[r])))
 }
 
-/// The sign summary of one voxel row.
+/// The sign summary of one voxel row: some observed voxel (`weight > 0`) has `tsdf >= 0` /
+/// `tsdf < 0`. (Voxel values are finite: integration keeps them so and loading checks.)
 #[inline(always)]
-fn row_flags(tsdf: &[f32; BLOCK_SIZE as usize], weight: &[f32; BLOCK_SIZE as usize]) -> u8 {
-    let (mut pos, mut neg) = (false, false);
-    for x in 0..BLOCK_SIZE as usize {
-        neg |= weight[x] > 0.0 && tsdf[x] < 0.0;
-        pos |= weight[x] > 0.0 && tsdf[x] >= 0.0;
-    }
-    (pos as u8 * HAS_POSITIVE) | (neg as u8 * HAS_NEGATIVE)
+fn row_flags(tsdf: f32x8, weight: f32x8) -> u8 {
+    let zero = f32x8::splat(0.0);
+    let observed = weight.simd_gt(zero).to_bitmask();
+    let negative = tsdf.simd_lt(zero).to_bitmask();
+    ((observed & !negative != 0) as u8 * HAS_POSITIVE) | ((observed & negative != 0) as u8 * HAS_NEGATIVE)
 }
 
 #[cfg(test)]

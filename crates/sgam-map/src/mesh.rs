@@ -6,7 +6,7 @@ use rustc_hash::FxHashMap;
 use sgam_core::TriMesh;
 
 use crate::block::{Block, Voxel, BLOCK_SIZE};
-use crate::map::{corner_offset, TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
+use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
 use crate::mc_table::{edge_axis, edge_start, table};
 
 /// Global id of a mesh vertex: the marching-cubes edge from global voxel `g` to `g + e_axis`.
@@ -59,16 +59,21 @@ const CORNER_OFFSET: [usize; 8] = {
     o
 };
 
-/// Per marching-cubes edge: its axis and the gather-grid offset of its start corner.
-const EDGES: [(usize, usize); 12] = {
-    let mut t = [(0usize, 0usize); 12];
+/// Per marching-cubes edge: its axis, the gather-grid offset of its start corner, and that
+/// corner's offset from the cell.
+const EDGES: [(usize, usize, IVec3); 12] = {
+    let mut t = [(0usize, 0usize, IVec3::ZERO); 12];
     let mut e = 0;
     while e < 12 {
-        t[e] = (edge_axis(e), CORNER_OFFSET[edge_start(e)]);
+        let c = edge_start(e) as i32;
+        t[e] = (edge_axis(e), CORNER_OFFSET[edge_start(e)], IVec3::new(c & 1, (c >> 1) & 1, c >> 2));
         e += 1;
     }
     t
 };
+
+/// Unit step along each axis.
+const AXIS_STEP: [IVec3; 3] = [IVec3::X, IVec3::Y, IVec3::Z];
 
 /// Per-thread working memory of [`TsdfMap::mesh_block`], reused across blocks.
 struct MeshScratch {
@@ -76,13 +81,11 @@ struct MeshScratch {
     cache: Box<[u32; GRID * GRID * GRID * 3]>,
     /// Slots of `cache` set by the current block (reset after it).
     used: Vec<u16>,
-    /// The block's mesh as it is built.
-    out: BlockMesh,
 }
 
 impl MeshScratch {
     fn new() -> Self {
-        Self { cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]), used: Vec::new(), out: BlockMesh::default() }
+        Self { cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]), used: Vec::new() }
     }
 }
 
@@ -333,8 +336,7 @@ impl TsdfMap {
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
-        let MeshScratch { cache, used, out } = scratch;
-        out.clear();
+        let MeshScratch { cache, used } = scratch;
         for z in 0..BLOCK_SIZE as usize {
             for y in 0..BLOCK_SIZE as usize {
                 if !cell_rows[y + 8 * z] {
@@ -358,27 +360,25 @@ impl TsdfMap {
                         let mut idx = [0u32; 3];
                         for k in 0..3 {
                             let e = tri[k] as usize;
-                            let (axis, start) = EDGES[e];
+                            let (axis, start, corner) = EDGES[e];
                             let slot = (base + start) * 3 + axis;
                             if cache[slot] == u32::MAX {
-                                cache[slot] = out.positions.len() as u32;
+                                cache[slot] = mesh.positions.len() as u32;
                                 used.push(slot as u16);
-                                let local = cell + corner_offset(edge_start(e));
-                                let mut step = IVec3::ZERO;
-                                step[axis] = 1;
-                                let ((t0, c0), (t1, c1)) = (voxel_at(local), voxel_at(local + step));
+                                let local = cell + corner;
+                                let ((t0, c0), (t1, c1)) = (voxel_at(local), voxel_at(local + AXIS_STEP[axis]));
                                 let t = t0 / (t0 - t1);
                                 let g = origin + local;
                                 let mut p = (g.as_vec3() + Vec3::splat(0.5)) * vs;
                                 p[axis] += t * vs;
                                 let c = std::array::from_fn(|ch| c0[ch] + t * (c1[ch] - c0[ch]));
-                                out.positions.push(p);
-                                out.colours.push(c);
-                                out.edge_keys.push((g, axis as u8));
+                                mesh.positions.push(p);
+                                mesh.colours.push(c);
+                                mesh.edge_keys.push((g, axis as u8));
                             }
                             idx[k] = cache[slot];
                         }
-                        out.triangles.push(idx);
+                        mesh.triangles.push(idx);
                     }
                 }
             }
@@ -387,14 +387,8 @@ impl TsdfMap {
             cache[slot as usize] = u32::MAX;
         }
         used.clear();
-        // Built in the (cache-warm) scratch mesh, copied out in bulk: pushing into the block's
-        // own buffers, cold since the last frame, stalled on their stores.
-        mesh.positions.extend_from_slice(&out.positions);
-        mesh.colours.extend_from_slice(&out.colours);
-        mesh.edge_keys.extend_from_slice(&out.edge_keys);
-        mesh.triangles.extend_from_slice(&out.triangles);
-        if let Some(&first) = out.positions.first() {
-            let (lo, hi) = out.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
+        if let Some(&first) = mesh.positions.first() {
+            let (lo, hi) = mesh.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
             mesh.min = lo;
             mesh.max = hi;
         }
