@@ -4,6 +4,7 @@ use rayon::prelude::*;
 
 use crate::block::floor_i32;
 use sgam_core::{is_valid_depth, Camera, Image, RgbdFrame, Rigid3, Vec2, Vec3};
+use wide::{bytemuck::cast, f32x8, i32x8};
 
 /// Tolerances and policy of [`warp_colour`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -66,7 +67,9 @@ pub struct Warped {
 /// depth_rel_tolerance * z_s`. Occluded or disoccluded points fail this test. Among accepted
 /// sources the best is chosen per [`WarpConfig::selection`]; its colour is bilinearly sampled
 /// at `(us, vs)` (edge-clamped). Pixels without depth or without an accepted source are
-/// `missing`. Deterministic; parallel over rows (rayon).
+/// `missing`. Deterministic; parallel over rows (rayon), 8 target pixels at a time (SIMD,
+/// `wide`): projection, depth test and source choice run lane-wise, only the source pixel
+/// reads are scalar.
 pub fn warp_colour(
     target: &Camera,
     target_depth_m: &Image<f32>,
@@ -74,9 +77,13 @@ pub fn warp_colour(
     config: &WarpConfig,
 ) -> Warped {
     let (w, h) = (target_depth_m.width as usize, target_depth_m.height as usize);
-    // Per source: index, source_from_target, camera distance to the target; nearest first, so
-    // with `NearestCamera` the scan stops at the first source farther than an accepted one.
-    let mut prepared: Vec<(usize, Rigid3, f32)> = sources
+    let mut colour = vec![[0.0f32; 3]; w * h];
+    let mut missing = vec![true; w * h];
+    let mut index = vec![-1i32; w * h];
+    let target_ok = target.world_from_camera.is_finite() && target_depth_m.data.len() == w * h;
+    // Per source: nearest camera first, so with `NearestCamera` a pixel stops looking at the
+    // first source farther than an accepted one.
+    let mut prepared: Vec<Prepared<'_>> = sources
         .iter()
         .enumerate()
         .filter(|(_, s)| {
@@ -84,76 +91,246 @@ pub fn warp_colour(
             s.frame.depth_m.size() == (k.width, k.height)
                 && s.frame.colour.size() == (k.width, k.height)
                 && s.camera.world_from_camera.is_finite()
+                && k.width > 0
+                && k.height > 0
         })
-        .map(|(i, s)| {
-            let dist = s.camera.centre_world().distance(target.centre_world());
-            (i, s.camera.world_from_camera.inverse() * target.world_from_camera, dist)
-        })
+        .map(|(i, s)| Prepared::new(i, s, target))
         .collect();
-    prepared.sort_by(|a, b| a.2.total_cmp(&b.2).then(a.0.cmp(&b.0)));
-    let nearest_wins = config.selection == SourceSelection::NearestCamera;
-    let mut colour = vec![[0.0f32; 3]; w * h];
-    let mut missing = vec![true; w * h];
-    let mut index = vec![-1i32; w * h];
-    let target_ok = target.world_from_camera.is_finite();
-    colour
-        .par_chunks_mut(w.max(1))
-        .zip(missing.par_chunks_mut(w.max(1)))
-        .zip(index.par_chunks_mut(w.max(1)))
-        .enumerate()
-        .for_each(|(v, ((crow, mrow), irow))| {
-            if !target_ok {
-                return;
-            }
-            let kt = target.intrinsics;
-            // Target ray (z = 1) of pixel (u, v) = row_ray + u * du; in each source frame the
-            // point at depth z is z * (R_st * ray) + t_st.
-            let row_ray = kt.ray_z1(Vec2::new(0.0, v as f32));
-            let du = Vec3::new(1.0 / kt.fx, 0.0, 0.0);
-            for u in 0..w {
-                let z_t = target_depth_m.data[v * w + u];
-                if !is_valid_depth(z_t) {
-                    continue;
-                }
-                let ray = row_ray + du * u as f32;
-                // (key for comparison, source position in `prepared`, sample location)
-                let mut best: Option<((f32, f32, usize), usize, Vec2)> = None;
-                for (j, (i, source_from_target, dist)) in prepared.iter().enumerate() {
-                    if nearest_wins && best.as_ref().is_some_and(|((d, _, _), _, _)| *dist > *d) {
-                        break; // every later source is at least this far: none can win
-                    }
-                    let s = &sources[*i];
-                    let pc = source_from_target.transform_point(ray * z_t);
-                    let Some(uv) = s.camera.intrinsics.project(pc) else { continue };
-                    if !s.camera.intrinsics.contains(uv) {
-                        continue;
-                    }
-                    let Some(d_s) = sample_depth(&s.frame.depth_m, uv) else { continue };
-                    let err = (d_s - pc.z).abs();
-                    if err > config.depth_abs_tolerance_m + config.depth_rel_tolerance * pc.z {
-                        continue;
-                    }
-                    let rel = err / pc.z;
-                    let key = match config.selection {
-                        SourceSelection::SmallestDepthError => (rel, *dist, *i),
-                        SourceSelection::NearestCamera => (*dist, rel, *i),
-                    };
-                    if best.as_ref().is_none_or(|(k, _, _)| key < *k) {
-                        best = Some((key, j, uv));
-                    }
-                }
-                if let Some((_, j, uv)) = best {
-                    let i = prepared[j].0;
-                    crow[u] = sample_colour(&sources[i].frame.colour, uv);
-                    mrow[u] = false;
-                    irow[u] = i as i32;
-                }
-            }
-        });
+    prepared.sort_by(|a, b| a.dist.total_cmp(&b.dist).then(a.index.cmp(&b.index)));
+    if target_ok && w > 0 && !prepared.is_empty() {
+        let kernel = WarpKernel::new(target, &prepared, config);
+        colour
+            .par_chunks_mut(w)
+            .zip(missing.par_chunks_mut(w))
+            .zip(index.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(v, ((crow, mrow), irow))| {
+                kernel.row(v, &target_depth_m.data[v * w..(v + 1) * w], crow, mrow, irow);
+            });
+    }
     Warped {
         colour: Image { width: w as u32, height: h as u32, data: colour },
         missing,
         source_index: Image { width: w as u32, height: h as u32, data: index },
+    }
+}
+
+/// One source, ready for the kernel: `source_from_target`, intrinsics, pixels.
+struct Prepared<'a> {
+    /// Index into the caller's `sources`.
+    index: usize,
+    /// Distance between the source and target camera centres.
+    dist: f32,
+    source_from_target: Rigid3,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    width: usize,
+    height: usize,
+    depth: &'a Image<f32>,
+    colour: &'a Image<[f32; 3]>,
+}
+
+impl<'a> Prepared<'a> {
+    fn new(index: usize, s: &SourceView<'a>, target: &Camera) -> Self {
+        let k = s.camera.intrinsics;
+        Self {
+            index,
+            dist: s.camera.centre_world().distance(target.centre_world()),
+            source_from_target: s.camera.world_from_camera.inverse() * target.world_from_camera,
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            width: k.width as usize,
+            height: k.height as usize,
+            depth: &s.frame.depth_m,
+            colour: &s.frame.colour,
+        }
+    }
+}
+
+/// Per-call constants of the 8-lane warp.
+struct WarpKernel<'a, 'b> {
+    sources: &'b [Prepared<'a>],
+    /// Target intrinsics.
+    fx: f32,
+    cx: f32,
+    fy: f32,
+    cy: f32,
+    nearest_wins: bool,
+    abs_tol: f32,
+    rel_tol: f32,
+}
+
+impl<'a, 'b> WarpKernel<'a, 'b> {
+    fn new(target: &Camera, sources: &'b [Prepared<'a>], config: &WarpConfig) -> Self {
+        let k = target.intrinsics;
+        Self {
+            sources,
+            fx: k.fx,
+            cx: k.cx,
+            fy: k.fy,
+            cy: k.cy,
+            nearest_wins: config.selection == SourceSelection::NearestCamera,
+            abs_tol: config.depth_abs_tolerance_m,
+            rel_tol: config.depth_rel_tolerance,
+        }
+    }
+
+    /// Warps target row `v` (`depth` is its depth row).
+    fn row(&self, v: usize, depth: &[f32], crow: &mut [[f32; 3]], mrow: &mut [bool], irow: &mut [i32]) {
+        // Target ray (z = 1) of pixel (u, v) is `(x0 + u / fx, y, 1)`; in each source frame the
+        // point at planar depth z is `z * (a + u b) + t` with `a = R ray(0, v)`, `b = R e_x / fx`.
+        let ray0 = Vec3::new(-self.cx / self.fx, (v as f32 - self.cy) / self.fy, 1.0);
+        let du = Vec3::new(1.0 / self.fx, 0.0, 0.0);
+        let rows: Vec<(Vec3, Vec3)> = self
+            .sources
+            .iter()
+            .map(|s| (s.source_from_target.rotation * ray0, s.source_from_target.rotation * du))
+            .collect();
+        let lane = f32x8::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
+        let (zero, half) = (f32x8::splat(0.0), f32x8::splat(0.5));
+        let max = f32x8::splat(f32::MAX);
+        for u0 in (0..depth.len()).step_by(L) {
+            let n = L.min(depth.len() - u0);
+            let mut z = [0.0f32; L];
+            z[..n].copy_from_slice(&depth[u0..u0 + n]);
+            let z = f32x8::new(z);
+            // is_valid_depth, lane-wise: NaN and infinities fail one of the comparisons
+            let valid = z.simd_gt(zero) & z.simd_le(max);
+            if valid.to_bitmask() == 0 {
+                continue;
+            }
+            let u = f32x8::splat(u0 as f32) + lane;
+            // Per lane: best key so far (primary, secondary), source position, sample location.
+            let mut has_best = f32x8::splat(0.0).simd_gt(zero); // all false
+            let (mut best_p, mut best_s) = (f32x8::splat(f32::INFINITY), f32x8::splat(f32::INFINITY));
+            let mut best_j = f32x8::splat(-1.0);
+            let (mut best_us, mut best_vs) = (zero, zero);
+            for (j, (s, &(a, b))) in self.sources.iter().zip(&rows).enumerate() {
+                let dist = f32x8::splat(s.dist);
+                // With `NearestCamera`, a lane that accepted a nearer source is done.
+                let mut active = valid;
+                if self.nearest_wins {
+                    active = active & !(has_best & dist.simd_gt(best_p));
+                    if active.to_bitmask() == 0 {
+                        break; // later sources are at least as far
+                    }
+                }
+                let t = s.source_from_target.translation;
+                let px = (f32x8::splat(a.x) + f32x8::splat(b.x) * u) * z + f32x8::splat(t.x);
+                let py = (f32x8::splat(a.y) + f32x8::splat(b.y) * u) * z + f32x8::splat(t.y);
+                let pz = (f32x8::splat(a.z) + f32x8::splat(b.z) * u) * z + f32x8::splat(t.z);
+                let iz = f32x8::splat(1.0) / pz;
+                let us = f32x8::splat(s.fx) * px * iz + f32x8::splat(s.cx);
+                let vs = f32x8::splat(s.fy) * py * iz + f32x8::splat(s.cy);
+                let inside = active
+                    & pz.simd_gt(zero)
+                    & us.simd_ge(-half)
+                    & vs.simd_ge(-half)
+                    & us.simd_lt(f32x8::splat(s.width as f32 - 0.5))
+                    & vs.simd_lt(f32x8::splat(s.height as f32 - 0.5));
+                let inside_bits = inside.to_bitmask();
+                if inside_bits == 0 {
+                    continue;
+                }
+                let (d_s, has_d) = s.sample_depth8(us, vs, inside_bits);
+                let err = (d_s - pz).abs();
+                let accept = inside
+                    & has_d
+                    & err.simd_le(f32x8::splat(self.abs_tol) + f32x8::splat(self.rel_tol) * pz);
+                if accept.to_bitmask() == 0 {
+                    continue;
+                }
+                let rel = err / pz;
+                let (p, q) = if self.nearest_wins { (dist, rel) } else { (rel, dist) };
+                // Sources come in (distance, index) order, so on equal (p, q) the earlier one
+                // (lower index) stays.
+                let better = accept & (!has_best | p.simd_lt(best_p) | (p.simd_eq(best_p) & q.simd_lt(best_s)));
+                has_best = has_best | better;
+                best_p = better.select(p, best_p);
+                best_s = better.select(q, best_s);
+                best_j = better.select(f32x8::splat(j as f32), best_j);
+                best_us = better.select(us, best_us);
+                best_vs = better.select(vs, best_vs);
+            }
+            let bits = has_best.to_bitmask();
+            if bits == 0 {
+                continue;
+            }
+            let (bj, bu, bv) = (best_j.to_array(), best_us.to_array(), best_vs.to_array());
+            for l in 0..n {
+                if bits >> l & 1 == 1 {
+                    let s = &self.sources[bj[l] as usize];
+                    crow[u0 + l] = sample_colour(s.colour, Vec2::new(bu[l], bv[l]));
+                    mrow[u0 + l] = false;
+                    irow[u0 + l] = s.index as i32;
+                }
+            }
+        }
+    }
+}
+
+/// SIMD width of the warp kernel.
+const L: usize = 8;
+
+impl Prepared<'_> {
+    /// [`sample_depth`] for the lanes in `lanes` (bit mask; their locations lie inside the
+    /// image): the value and whether there is one. The four neighbours are read per lane, the
+    /// rest runs lane-wise; border lanes (no full 2x2 neighbourhood) go through the scalar path.
+    #[inline]
+    fn sample_depth8(&self, us: f32x8, vs: f32x8, lanes: u32) -> (f32x8, f32x8) {
+        let (w, h) = (self.width as i32, self.height as i32);
+        let floor = |x: f32x8| {
+            let t = x.fast_trunc_int();
+            t + cast::<f32x8, i32x8>(t.round_float().simd_gt(x))
+        };
+        let (x0, y0) = (floor(us), floor(vs));
+        let (fx, fy) = (us - x0.round_float(), vs - y0.round_float());
+        let (x0a, y0a) = (x0.to_array(), y0.to_array());
+        let data = &self.depth.data;
+        let mut q = [[0.0f32; L]; 4];
+        // lanes answered by the scalar path: (value or NaN)
+        let mut direct = [f32::NAN; L];
+        let mut direct_bits = 0u32;
+        let mut bits = lanes;
+        while bits != 0 {
+            let l = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let (x, y) = (x0a[l], y0a[l]);
+            if x >= 0 && y >= 0 && x + 1 < w && y + 1 < h {
+                let i = (y * w + x) as usize;
+                let (top, bottom) = (&data[i..i + 2], &data[i + self.width..i + self.width + 2]);
+                (q[0][l], q[1][l], q[2][l], q[3][l]) = (top[0], top[1], bottom[0], bottom[1]);
+            } else {
+                let uv = Vec2::new(us.to_array()[l], vs.to_array()[l]);
+                direct[l] = sample_depth(self.depth, uv).unwrap_or(f32::NAN);
+                direct_bits |= 1 << l;
+            }
+        }
+        let (zero, max) = (f32x8::splat(0.0), f32x8::splat(f32::MAX));
+        let ok = |d: f32x8| d.simd_gt(zero) & d.simd_le(max);
+        let [d00, d10, d01, d11] = q.map(f32x8::new);
+        let (v00, v10, v01, v11) = (ok(d00), ok(d10), ok(d01), ok(d11));
+        let top = d00 + fx * (d10 - d00);
+        let bottom = d01 + fx * (d11 - d01);
+        let bilinear = top + fy * (bottom - top);
+        // the nearest pixel is one of the four: (floor(us + 0.5), floor(vs + 0.5))
+        let half = f32x8::splat(0.5);
+        let (right, down) = (fx.simd_ge(half), fy.simd_ge(half));
+        let near_top = right.select(d10, d00);
+        let near_bottom = right.select(d11, d01);
+        let nearest = down.select(near_bottom, near_top);
+        let all4 = v00 & v10 & v01 & v11;
+        let value = all4.select(bilinear, nearest);
+        let has = all4 | ok(nearest);
+        // scalar-path lanes
+        let direct = f32x8::new(direct);
+        let is_direct = f32x8::new(std::array::from_fn(|l| if direct_bits >> l & 1 == 1 { 1.0 } else { 0.0 }))
+            .simd_gt(zero);
+        (is_direct.select(direct, value), is_direct.select(ok(direct), has))
     }
 }
 
