@@ -214,7 +214,7 @@ impl<'a, 'b> WarpKernel<'a, 'b> {
                 // With `NearestCamera`, a lane that accepted a nearer source is done.
                 let mut active = valid;
                 if self.nearest_wins {
-                    active = active & !(has_best & dist.simd_gt(best_p));
+                    active &= !(has_best & dist.simd_gt(best_p));
                     if active.to_bitmask() == 0 {
                         break; // later sources are at least as far
                     }
@@ -249,7 +249,7 @@ impl<'a, 'b> WarpKernel<'a, 'b> {
                 // Sources come in (distance, index) order, so on equal (p, q) the earlier one
                 // (lower index) stays.
                 let better = accept & (!has_best | p.simd_lt(best_p) | (p.simd_eq(best_p) & q.simd_lt(best_s)));
-                has_best = has_best | better;
+                has_best |= better;
                 best_p = better.select(p, best_p);
                 best_s = better.select(q, best_s);
                 best_j = better.select(f32x8::splat(j as f32), best_j);
