@@ -142,37 +142,10 @@ impl TsdfMap {
     /// of the whole map from farther away than the sensor range).
     pub fn rasterize_range(&self, camera: &Camera, near_m: f32, far_m: f32) -> Rendered {
         let k = camera.intrinsics;
-        let (w, h) = (k.width as usize, k.height as usize);
+        let w = k.width as usize;
         let mut out = Rendered::empty(k.width, k.height);
-        if !camera.world_from_camera.is_finite() {
-            return out;
-        }
-        let (near, far) = (near_m.max(1e-4), far_m);
-        let ids: Vec<u32> = self
-            .blocks_in_frustum(camera, near, far)
-            .into_iter()
-            .filter(|&i| !self.meshes[i as usize].is_empty())
-            .collect();
-        out.blocks_visited = ids.len();
-        let camera_from_world = camera.world_from_camera.inverse();
-        // Blocks are split into contiguous chunks, each rasterized into its own z-buffer; the
-        // merge keeps the nearest hit and, on exact ties, the earlier chunk -- the same result as
-        // one sequential pass in id order, whatever the number of threads.
-        let chunk_len = ids.len().div_ceil(rayon::current_num_threads().max(1)).max(1);
-        let buffers: Vec<ZBuffer> = ids
-            .par_chunks(chunk_len)
-            .map(|chunk| {
-                let mut zb = ZBuffer::new(w, h);
-                let mut projected = Vec::new();
-                for &id in chunk {
-                    self.raster_block(id, &camera_from_world, camera, near, far, &mut projected, &mut zb);
-                }
-                zb
-            })
-            .collect();
-        if buffers.is_empty() {
-            return out;
-        }
+        let Some((buffers, visited)) = self.z_buffers::<true>(camera, near_m, far_m) else { return out };
+        out.blocks_visited = visited;
         // Merge (nearest wins; on exact ties the earlier chunk) and resolve, in parallel over rows.
         let rows = w.max(1);
         out.depth_m
@@ -185,12 +158,7 @@ impl TsdfMap {
             .for_each(|(v, (((depth, colour), covered), back))| {
                 for u in 0..depth.len() {
                     let i = v * w + u;
-                    let mut best = &buffers[0];
-                    for b in &buffers[1..] {
-                        if b.inv_z[i] > best.inv_z[i] {
-                            best = b;
-                        }
-                    }
+                    let best = nearest_buffer(&buffers, i);
                     if best.inv_z[i] > 0.0 {
                         depth[u] = 1.0 / best.inv_z[i];
                         colour[u] = best.colour[i];
@@ -202,8 +170,89 @@ impl TsdfMap {
         out
     }
 
-    /// Rasterizes the mesh of block `id` into `zb`; `projected` is scratch space.
-    fn raster_block(
+    /// Planar depth only (metres, `0` where nothing was hit) of [`TsdfMap::render`]: what the
+    /// generator's guidance needs. Re-meshes dirty blocks first, like `render`; the depth is
+    /// bit-identical to `render(camera).depth_m`, without the colour and facing work.
+    pub fn render_depth(&mut self, camera: &Camera) -> Image<f32> {
+        let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
+        self.update_mesh(threshold);
+        self.rasterize_depth(camera)
+    }
+
+    /// Planar depth only of [`TsdfMap::rasterize`] (no re-meshing).
+    pub fn rasterize_depth(&self, camera: &Camera) -> Image<f32> {
+        let k = camera.intrinsics;
+        let w = k.width as usize;
+        let mut out = Image::filled(k.width, k.height, 0.0f32);
+        let Some((buffers, _)) = self.z_buffers::<false>(camera, self.config.depth_min_m, self.config.depth_max_m)
+        else {
+            return out;
+        };
+        out.data.par_chunks_mut(w.max(1)).enumerate().for_each(|(v, depth)| {
+            for (u, d) in depth.iter_mut().enumerate() {
+                let i = v * w + u;
+                let iz = nearest_buffer(&buffers, i).inv_z[i];
+                if iz > 0.0 {
+                    *d = 1.0 / iz;
+                }
+            }
+        });
+        out
+    }
+
+    /// The per-chunk z-buffers of the blocks in the frustum (with colour and facing when
+    /// `SHADE`), and the number of blocks rasterized; `None` when there is nothing to draw.
+    ///
+    /// Blocks are split into contiguous chunks, each rasterized into its own z-buffer; merging
+    /// them with [`nearest_buffer`] (nearest hit, on exact ties the earlier chunk) gives the
+    /// same result as one sequential pass in id order, whatever the number of threads.
+    fn z_buffers<const SHADE: bool>(&self, camera: &Camera, near_m: f32, far_m: f32) -> Option<(Vec<ZBuffer>, usize)> {
+        let k = camera.intrinsics;
+        let (w, h) = (k.width as usize, k.height as usize);
+        if !camera.world_from_camera.is_finite() {
+            return None;
+        }
+        let (near, far) = (near_m.max(1e-4), far_m);
+        let ids: Vec<u32> = self
+            .blocks_in_frustum(camera, near, far)
+            .into_iter()
+            .filter(|&i| !self.meshes[i as usize].is_empty())
+            .collect();
+        let camera_from_world = camera.world_from_camera.inverse();
+        // Contiguous chunks of about equal work (triangles + vertices), one per thread.
+        let cost = |id: u32| {
+            let m = &self.meshes[id as usize];
+            m.triangles.len() + m.positions.len()
+        };
+        let total: usize = ids.iter().map(|&id| cost(id)).sum();
+        let threads = rayon::current_num_threads().max(1);
+        let mut chunks: Vec<&[u32]> = Vec::with_capacity(threads);
+        let (mut start, mut acc) = (0usize, 0usize);
+        for (i, &id) in ids.iter().enumerate() {
+            acc += cost(id);
+            if acc * threads >= total * (chunks.len() + 1) && chunks.len() + 1 < threads {
+                chunks.push(&ids[start..=i]);
+                start = i + 1;
+            }
+        }
+        chunks.push(&ids[start..]);
+        let buffers: Vec<ZBuffer> = chunks
+            .into_par_iter()
+            .map(|chunk| {
+                let mut zb = ZBuffer::new(w, h, SHADE);
+                let mut projected = Vec::new();
+                for &id in chunk {
+                    self.raster_block::<SHADE>(id, &camera_from_world, camera, near, far, &mut projected, &mut zb);
+                }
+                zb
+            })
+            .collect();
+        (!buffers.is_empty()).then_some((buffers, ids.len()))
+    }
+
+    /// Rasterizes the mesh of block `id` into `zb` (colour and facing too when `SHADE`);
+    /// `projected` is scratch space.
+    fn raster_block<const SHADE: bool>(
         &self,
         id: u32,
         camera_from_world: &Rigid3,
@@ -241,14 +290,13 @@ impl TsdfMap {
             if x1 < x0 || y1 < y0 {
                 continue;
             }
-            let normal = (b.c - a.c).cross(c.c - a.c);
             let t = ScreenTri {
                 p: [a.s, b.s, c.s],
                 inv_z: [1.0 / a.c.z, 1.0 / b.c.z, 1.0 / c.c.z],
-                col: tri.map(|i| Vec3::from_array(m.colours[i as usize])),
-                back: normal.dot(a.c) > 0.0,
+                col: if SHADE { tri.map(|i| Vec3::from_array(m.colours[i as usize])) } else { [Vec3::ZERO; 3] },
+                back: SHADE && (b.c - a.c).cross(c.c - a.c).dot(a.c) > 0.0,
             };
-            raster_tri(&t, [x0 as usize, x1 as usize, y0 as usize, y1 as usize], far, zb);
+            raster_tri::<SHADE>(&t, [x0 as usize, x1 as usize, y0 as usize, y1 as usize], far, zb);
         }
     }
 
@@ -409,7 +457,8 @@ impl std::fmt::Debug for BlockCache<'_> {
     }
 }
 
-/// A per-chunk z-buffer: `1/z` (0 = empty), colour and facing per pixel.
+/// A per-chunk z-buffer: `1/z` (0 = empty), and colour and facing per pixel when shading
+/// (empty otherwise).
 struct ZBuffer {
     width: usize,
     inv_z: Vec<f32>,
@@ -418,15 +467,29 @@ struct ZBuffer {
 }
 
 impl ZBuffer {
-    fn new(width: usize, height: usize) -> Self {
+    fn new(width: usize, height: usize, shade: bool) -> Self {
         let n = width * height;
-        Self { width, inv_z: vec![0.0; n], colour: vec![[0.0; 3]; n], back: vec![false; n] }
+        let m = if shade { n } else { 0 };
+        Self { width, inv_z: vec![0.0; n], colour: vec![[0.0; 3]; m], back: vec![false; m] }
     }
 }
 
-/// Rasterizes one triangle over the pixel-centre box `[x0, x1, y0, y1]` (inclusive).
+/// The buffer holding the nearest hit at pixel `i` (on exact ties the earliest).
 #[inline]
-fn raster_tri(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], far: f32, zb: &mut ZBuffer) {
+fn nearest_buffer(buffers: &[ZBuffer], i: usize) -> &ZBuffer {
+    let mut best = &buffers[0];
+    for b in &buffers[1..] {
+        if b.inv_z[i] > best.inv_z[i] {
+            best = b;
+        }
+    }
+    best
+}
+
+/// Rasterizes one triangle over the pixel-centre box `[x0, x1, y0, y1]` (inclusive); writes
+/// colour and facing too when `SHADE`.
+#[inline]
+fn raster_tri<const SHADE: bool>(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], far: f32, zb: &mut ZBuffer) {
     let [a, b, c] = t.p;
     let area = (b - a).perp_dot(c - a);
     if area.abs() < 1e-12 || !area.is_finite() {
@@ -451,10 +514,13 @@ fn raster_tri(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], far: f32, zb: &mut ZB
             let i = y * zb.width + x;
             if iz > zb.inv_z[i] && iz >= min_inv_z {
                 zb.inv_z[i] = iz;
-                // Perspective-correct colour: interpolate colour / z, divide by 1 / z.
-                let col = (l0 * t.inv_z[0] * t.col[0] + l1 * t.inv_z[1] * t.col[1] + l2 * t.inv_z[2] * t.col[2]) / iz;
-                zb.colour[i] = col.to_array();
-                zb.back[i] = t.back;
+                if SHADE {
+                    // Perspective-correct colour: interpolate colour / z, divide by 1 / z.
+                    let col =
+                        (l0 * t.inv_z[0] * t.col[0] + l1 * t.inv_z[1] * t.col[1] + l2 * t.inv_z[2] * t.col[2]) / iz;
+                    zb.colour[i] = col.to_array();
+                    zb.back[i] = t.back;
+                }
             }
         }
     }

@@ -99,14 +99,11 @@ pub fn warp_colour(
     prepared.sort_by(|a, b| a.dist.total_cmp(&b.dist).then(a.index.cmp(&b.index)));
     if target_ok && w > 0 && !prepared.is_empty() {
         let kernel = WarpKernel::new(target, &prepared, config);
-        colour
-            .par_chunks_mut(w)
-            .zip(missing.par_chunks_mut(w))
-            .zip(index.par_chunks_mut(w))
-            .enumerate()
-            .for_each(|(v, ((crow, mrow), irow))| {
+        colour.par_chunks_mut(w).zip(missing.par_chunks_mut(w)).zip(index.par_chunks_mut(w)).enumerate().for_each(
+            |(v, ((crow, mrow), irow))| {
                 kernel.row(v, &target_depth_m.data[v * w..(v + 1) * w], crow, mrow, irow);
-            });
+            },
+        );
     }
     Warped {
         colour: Image { width: w as u32, height: h as u32, data: colour },
@@ -238,9 +235,7 @@ impl<'a, 'b> WarpKernel<'a, 'b> {
                 }
                 let (d_s, has_d) = s.sample_depth8(us, vs, inside_bits);
                 let err = (d_s - pz).abs();
-                let accept = inside
-                    & has_d
-                    & err.simd_le(f32x8::splat(self.abs_tol) + f32x8::splat(self.rel_tol) * pz);
+                let accept = inside & has_d & err.simd_le(f32x8::splat(self.abs_tol) + f32x8::splat(self.rel_tol) * pz);
                 if accept.to_bitmask() == 0 {
                     continue;
                 }
@@ -328,8 +323,8 @@ impl Prepared<'_> {
         let has = all4 | ok(nearest);
         // scalar-path lanes
         let direct = f32x8::new(direct);
-        let is_direct = f32x8::new(std::array::from_fn(|l| if direct_bits >> l & 1 == 1 { 1.0 } else { 0.0 }))
-            .simd_gt(zero);
+        let is_direct =
+            f32x8::new(std::array::from_fn(|l| if direct_bits >> l & 1 == 1 { 1.0 } else { 0.0 })).simd_gt(zero);
         (is_direct.select(direct, value), is_direct.select(ok(direct), has))
     }
 }

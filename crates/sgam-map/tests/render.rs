@@ -84,6 +84,14 @@ fn rasterized_depth_matches_analytic_depth() {
     }
     colour_err.sort_by(f32::total_cmp);
     assert!(colour_err[colour_err.len() * 9 / 10] < 0.05, "colour p90 {}", colour_err[colour_err.len() * 9 / 10]);
+    // The depth-only path (what the generator uses) gives the same depth, bit for bit, with
+    // any number of threads (its work split differs from the shaded one's only in chunking).
+    let depth = map.render_depth(&cam);
+    assert_eq!(depth, r.depth_m);
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    assert_eq!(one.install(|| map.rasterize_depth(&cam)), r.depth_m);
+    let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+    assert_eq!(three.install(|| map.rasterize(&cam)), r);
 }
 
 #[test]

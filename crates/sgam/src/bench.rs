@@ -16,7 +16,7 @@ pub enum Subject {
     Integrate,
     /// Incremental re-meshing of the blocks one frame changed.
     Mesh,
-    /// Rasterizing the map's mesh at a new camera (guidance depth).
+    /// Rasterizing the map's mesh at a new camera (guidance depth, as the generator does).
     Render,
     /// TSDF ray-cast at a new camera (alternative guidance depth).
     RayCast,
@@ -215,23 +215,23 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 continue;
             }
             Subject::Render => {
-                std::hint::black_box(map.render(cam));
+                std::hint::black_box(map.render_depth(cam));
             }
             Subject::RayCast => {
                 std::hint::black_box(map.ray_cast(cam));
             }
             Subject::Warp => {
-                let r = map.render(cam);
+                let depth = map.render_depth(cam);
                 let t1 = Instant::now();
-                std::hint::black_box(warp_colour(cam, &r.depth_m, &sources, &warp));
+                std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
                 map.integrate(frame, cam);
                 map.update_mesh(1.0);
                 continue;
             }
             Subject::MapStep => {
-                let r = map.render(cam);
-                std::hint::black_box(warp_colour(cam, &r.depth_m, &sources, &warp));
+                let depth = map.render_depth(cam);
+                std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 let s = map.integrate(frame, cam);
                 let m = map.update_mesh(1.0);
                 count(s, m);

@@ -110,15 +110,15 @@ impl<R: Refiner> WorldGenerator<R> {
         let sources = self.choose_sources(camera)?;
         timings.sources_ms = t.lap();
         // guidance geometry: rasterize the map's mesh at the target camera
-        let rendered = self.map.render(camera);
+        let depth_m = self.map.render_depth(camera);
         timings.render_ms = t.lap();
         // guidance colour: inverse-warp from the sources with a geometry check
         let views: Vec<SourceView<'_>> = sources.iter().map(|(c, f)| SourceView { camera: c, frame: f }).collect();
-        let warped = warp_colour(camera, &rendered.depth_m, &views, &self.config.warp);
+        let warped = warp_colour(camera, &depth_m, &views, &self.config.warp);
         let step_index = self.keyframes.len() as u64;
         let guidance = Guidance {
             camera: *camera,
-            frame: RgbdFrame { colour: warped.colour, depth_m: rendered.depth_m },
+            frame: RgbdFrame { colour: warped.colour, depth_m },
             missing: warped.missing,
             seed: self.config.seed ^ step_index.wrapping_mul(0x9E37_79B9_7F4A_7C15),
         };

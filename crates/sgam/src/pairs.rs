@@ -135,11 +135,11 @@ impl SynthPairs {
             map.integrate(f, cam);
         }
         map.update_mesh(1.0);
-        let rendered = map.render(&crop_cam);
+        let depth_m = map.render_depth(&crop_cam);
         let sources: Vec<SourceView<'_>> =
             views.iter().take(self.k_sources).map(|(c, f)| SourceView { camera: c, frame: f }).collect();
-        let warped = warp_colour(&crop_cam, &rendered.depth_m, &sources, &WarpConfig::default());
-        let mut input = RgbdFrame { colour: warped.colour, depth_m: rendered.depth_m };
+        let warped = warp_colour(&crop_cam, &depth_m, &sources, &WarpConfig::default());
+        let mut input = RgbdFrame { colour: warped.colour, depth_m };
         for (i, m) in warped.missing.iter().enumerate() {
             if *m {
                 input.depth_m.data[i] = 0.0;
