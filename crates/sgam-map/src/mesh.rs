@@ -8,29 +8,33 @@ use sgam_core::TriMesh;
 use crate::block::{Block, Voxel, BLOCK_SIZE};
 use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
 use crate::mc_table::{edge_axis, edge_start, table};
+use wide::f32x8;
 
 /// Global id of a mesh vertex: the marching-cubes edge from global voxel `g` to `g + e_axis`.
 pub(crate) type EdgeKey = (IVec3, u8);
 
 /// The marching-cubes mesh of the cells whose lowest corner lies in one block (so a block's
-/// cells read the voxels of its +x/+y/+z neighbours). Vertices carry their global edge key so
-/// block meshes weld into one world mesh.
+/// cells read the voxels of its +x/+y/+z neighbours). Each vertex remembers its edge in the
+/// block's 9^3 gather grid, from which its global edge key (for welding block meshes into one
+/// world mesh) and, lazily, its colour are derived.
 #[derive(Debug, Clone, Default)]
 pub(crate) struct BlockMesh {
     pub positions: Vec<Vec3>,
-    pub colours: Vec<[f32; 3]>,
-    pub edge_keys: Vec<EdgeKey>,
+    /// Per vertex: `3 * (x + 9 y + 81 z) + axis`, the edge from grid point `(x, y, z)` (local,
+    /// each in `0..=8`) along `axis`.
+    pub edges: Vec<u16>,
     pub triangles: Vec<[u32; 3]>,
-    /// Bounds of the vertices (meaningless when empty).
-    pub min: Vec3,
-    pub max: Vec3,
+    /// Vertex colours, filled on demand ([`TsdfMap::fill_colours`], or computed on the fly by
+    /// the shaded rasterizer): complete when as long as `positions`. Re-meshing empties them,
+    /// so the generator's loop (depth-only rendering) never computes them.
+    pub colours: Vec<[f32; 3]>,
 }
 
 impl BlockMesh {
     pub fn heap_bytes(&self) -> usize {
         self.positions.capacity() * 12
             + self.colours.capacity() * 12
-            + self.edge_keys.capacity() * std::mem::size_of::<EdgeKey>()
+            + self.edges.capacity() * 2
             + self.triangles.capacity() * 12
     }
 
@@ -38,12 +42,69 @@ impl BlockMesh {
         self.triangles.is_empty()
     }
 
+    /// True when `colours` holds every vertex's colour.
+    pub fn has_colours(&self) -> bool {
+        self.colours.len() == self.positions.len()
+    }
+
     /// Empties the mesh, keeping its buffers.
     pub fn clear(&mut self) {
         self.positions.clear();
         self.colours.clear();
-        self.edge_keys.clear();
+        self.edges.clear();
         self.triangles.clear();
+    }
+}
+
+/// Grid point and axis of a vertex's edge slot ([`BlockMesh::edges`]).
+#[inline]
+fn edge_of_slot(slot: u16) -> (IVec3, usize) {
+    let (g, axis) = (slot as i32 / 3, slot as usize % 3);
+    (IVec3::new(g % GRID as i32, g / GRID as i32 % GRID as i32, g / (GRID * GRID) as i32), axis)
+}
+
+/// The voxels a block's cells read: the block and its `+x/+y/+z` neighbours (by corner offset).
+struct Neighbourhood<'a> {
+    blocks: [Option<&'a Block>; 8],
+}
+
+impl<'a> Neighbourhood<'a> {
+    fn new(map: &'a TsdfMap, id: u32) -> Self {
+        let ids = map.upper[id as usize];
+        Self { blocks: std::array::from_fn(|o| (ids[o] != NONE).then(|| &map.blocks[ids[o] as usize])) }
+    }
+
+    /// Block and (row, lane) of grid point `l` (each coordinate in `0..=8`).
+    #[inline]
+    fn locate(&self, l: IVec3) -> Option<(&'a Block, usize, usize)> {
+        let o = (l.x >> 3 | (l.y >> 3) << 1 | (l.z >> 3) << 2) as usize;
+        self.blocks[o].map(|b| (b, ((l.y & 7) + 8 * (l.z & 7)) as usize, (l.x & 7) as usize))
+    }
+
+    #[inline]
+    fn tsdf(&self, l: IVec3) -> f32 {
+        self.locate(l).map_or(Voxel::EMPTY.tsdf, |(b, r, x)| b.planes.tsdf[r][x])
+    }
+
+    #[inline]
+    fn colour(&self, l: IVec3) -> [f32; 3] {
+        self.locate(l).map_or(Voxel::EMPTY.colour, |(b, r, x)| std::array::from_fn(|ch| b.planes.colour[ch][r][x]))
+    }
+
+    /// Where along its edge a vertex lies (fraction from the start point) and its colour.
+    #[inline]
+    fn crossing(&self, local: IVec3, axis: usize) -> f32 {
+        let (t0, t1) = (self.tsdf(local), self.tsdf(local + AXIS_STEP[axis]));
+        t0 / (t0 - t1)
+    }
+
+    /// The colour of the vertex on edge `slot`: the two end voxels' colours, interpolated like
+    /// the position.
+    fn vertex_colour(&self, slot: u16) -> [f32; 3] {
+        let (local, axis) = edge_of_slot(slot);
+        let t = self.crossing(local, axis);
+        let (c0, c1) = (self.colour(local), self.colour(local + AXIS_STEP[axis]));
+        std::array::from_fn(|ch| c0[ch] + t * (c1[ch] - c0[ch]))
     }
 }
 
@@ -140,7 +201,23 @@ impl TsdfMap {
     pub fn extract_mesh(&mut self, weight_threshold: f32) -> TriMesh {
         self.update_mesh(weight_threshold);
         let ids: Vec<u32> = (0..self.blocks.len() as u32).collect();
+        self.fill_colours(&ids);
         self.weld(ids, |_| true)
+    }
+
+    /// Computes the vertex colours of the block meshes of `ids` that lack them (in parallel).
+    pub(crate) fn fill_colours(&mut self, ids: &[u32]) {
+        let todo: Vec<u32> = ids.iter().copied().filter(|&id| !self.meshes[id as usize].has_colours()).collect();
+        let colours: Vec<Vec<[f32; 3]>> = todo.par_iter().map(|&id| self.vertex_colours(id)).collect();
+        for (id, c) in todo.into_iter().zip(colours) {
+            self.meshes[id as usize].colours = c;
+        }
+    }
+
+    /// The vertex colours of block `id`'s mesh, from the voxels.
+    pub(crate) fn vertex_colours(&self, id: u32) -> Vec<[f32; 3]> {
+        let hood = Neighbourhood::new(self, id);
+        self.meshes[id as usize].edges.iter().map(|&slot| hood.vertex_colour(slot)).collect()
     }
 
     /// Like [`TsdfMap::extract_mesh`] but keeps only triangles with at least one vertex inside
@@ -149,12 +226,13 @@ impl TsdfMap {
         self.update_mesh(weight_threshold);
         let margin = Vec3::splat(self.config.voxel_size_m);
         let ids = self.blocks_where(min - margin, max + margin, |_, _| true);
+        self.fill_colours(&ids);
         let inside = |p: Vec3| p.cmpge(min).all() && p.cmple(max).all();
         self.weld(ids, |tri| tri.iter().any(|p| inside(*p)))
     }
 
-    /// Merges the meshes of `ids` (any order; sorted by key here) keeping triangles that pass
-    /// `keep`.
+    /// Merges the meshes of `ids` (any order; sorted by key here; colours filled) keeping
+    /// triangles that pass `keep`.
     fn weld(&self, mut ids: Vec<u32>, keep: impl Fn(&[Vec3; 3]) -> bool) -> TriMesh {
         ids.sort_unstable_by_key(|&i| {
             let k = self.keys[i as usize];
@@ -168,6 +246,7 @@ impl TsdfMap {
             if m.is_empty() {
                 continue;
             }
+            let origin = self.keys[id as usize] * BLOCK_SIZE;
             local_to_global.clear();
             local_to_global.resize(m.positions.len(), u32::MAX);
             for tri in &m.triangles {
@@ -180,7 +259,8 @@ impl TsdfMap {
                     let li = tri[k] as usize;
                     if local_to_global[li] == u32::MAX {
                         let next = out.positions.len() as u32;
-                        let gi = *global.entry(m.edge_keys[li]).or_insert(next);
+                        let (local, axis) = edge_of_slot(m.edges[li]);
+                        let gi = *global.entry((origin + local, axis as u8)).or_insert(next);
                         if gi == next {
                             out.positions.push(m.positions[li]);
                             out.colours.push(m.colours[li]);
@@ -261,8 +341,6 @@ impl TsdfMap {
         let key = self.keys[id as usize];
         let ids = self.upper[id as usize];
         let flags = ids.iter().filter(|&&n| n != NONE).fold(0u8, |f, &n| f | self.sign_flags[n as usize]);
-        let neighbours: [Option<&Block>; 8] =
-            std::array::from_fn(|o| (ids[o] != NONE).then(|| &self.blocks[ids[o] as usize]));
         // No observed voxel on one side of the surface: no zero crossing (skip the gather).
         if flags != HAS_POSITIVE | HAS_NEGATIVE {
             return;
@@ -296,10 +374,12 @@ impl TsdfMap {
             return;
         }
         // Per needed grid row (y, z): bit x set when grid point x is usable (observed, weight at
-        // the threshold) / usable and inside (tsdf < 0).
+        // the threshold) / usable and inside (tsdf < 0); 8 voxels at a time.
+        let hood = Neighbourhood::new(self, id);
         let mut valid_rows = [0u16; GRID * GRID];
         let mut neg_rows = [0u16; GRID * GRID];
         let usable = |w: f32| w > 0.0 && w >= weight_threshold;
+        let (zero, threshold) = (f32x8::splat(0.0), f32x8::splat(weight_threshold));
         for z in 0..GRID {
             for y in 0..GRID {
                 if !needed[y + GRID * z] {
@@ -308,14 +388,13 @@ impl TsdfMap {
                 let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
                 let r = y % 8 + 8 * (z % 8);
                 let (mut valid, mut neg) = (0u16, 0u16);
-                if let Some(b) = neighbours[oyz] {
-                    let (t, w) = (&b.planes.tsdf[r], &b.planes.weight[r]);
-                    for x in 0..BLOCK_SIZE as usize {
-                        valid |= (usable(w[x]) as u16) << x;
-                        neg |= ((usable(w[x]) && t[x] < 0.0) as u16) << x;
-                    }
+                if let Some(b) = hood.blocks[oyz] {
+                    let (t, w) = (f32x8::new(b.planes.tsdf[r]), f32x8::new(b.planes.weight[r]));
+                    let ok = w.simd_gt(zero) & w.simd_ge(threshold);
+                    valid = ok.to_bitmask() as u16;
+                    neg = (ok & t.simd_lt(zero)).to_bitmask() as u16;
                 }
-                if let Some(b) = neighbours[oyz | 1] {
+                if let Some(b) = hood.blocks[oyz | 1] {
                     let (t, w) = (b.planes.tsdf[r][0], b.planes.weight[r][0]);
                     valid |= (usable(w) as u16) << 8;
                     neg |= ((usable(w) && t < 0.0) as u16) << 8;
@@ -324,15 +403,6 @@ impl TsdfMap {
                 neg_rows[y + GRID * z] = neg;
             }
         }
-        // Grid point `l` (each coordinate in 0..=8): tsdf and colour, from this block or a
-        // +x/+y/+z neighbour.
-        let voxel_at = |l: IVec3| -> (f32, [f32; 3]) {
-            let o = (l.x >> 3 | (l.y >> 3) << 1 | (l.z >> 3) << 2) as usize;
-            let Some(b) = neighbours[o] else { return (Voxel::EMPTY.tsdf, Voxel::EMPTY.colour) };
-            let (r, x) = (((l.y & 7) + 8 * (l.z & 7)) as usize, (l.x & 7) as usize);
-            let p = &b.planes;
-            (p.tsdf[r][x], [p.colour[0][r][x], p.colour[1][r][x], p.colour[2][r][x]])
-        };
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
@@ -366,15 +436,11 @@ impl TsdfMap {
                                 cache[slot] = mesh.positions.len() as u32;
                                 used.push(slot as u16);
                                 let local = cell + corner;
-                                let ((t0, c0), (t1, c1)) = (voxel_at(local), voxel_at(local + AXIS_STEP[axis]));
-                                let t = t0 / (t0 - t1);
-                                let g = origin + local;
-                                let mut p = (g.as_vec3() + Vec3::splat(0.5)) * vs;
+                                let t = hood.crossing(local, axis);
+                                let mut p = ((origin + local).as_vec3() + Vec3::splat(0.5)) * vs;
                                 p[axis] += t * vs;
-                                let c = std::array::from_fn(|ch| c0[ch] + t * (c1[ch] - c0[ch]));
                                 mesh.positions.push(p);
-                                mesh.colours.push(c);
-                                mesh.edge_keys.push((g, axis as u8));
+                                mesh.edges.push(slot as u16);
                             }
                             idx[k] = cache[slot];
                         }
@@ -387,11 +453,6 @@ impl TsdfMap {
             cache[slot as usize] = u32::MAX;
         }
         used.clear();
-        if let Some(&first) = mesh.positions.first() {
-            let (lo, hi) = mesh.positions.iter().fold((first, first), |(lo, hi), p| (lo.min(*p), hi.max(*p)));
-            mesh.min = lo;
-            mesh.max = hi;
-        }
     }
 }
 
@@ -465,7 +526,15 @@ mod tests {
         assert!(triangles > 1000, "{triangles}");
         assert_eq!(mesh.triangles.len(), triangles);
         assert_eq!(mesh.positions.len(), edges.len());
-        let got: FxHashSet<EdgeKey> = map.meshes.iter().flat_map(|m| m.edge_keys.iter().copied()).collect();
+        let got: FxHashSet<EdgeKey> = (0..map.blocks.len())
+            .flat_map(|id| {
+                let origin = map.keys[id] * BLOCK_SIZE;
+                map.meshes[id].edges.iter().map(move |&s| {
+                    let (l, axis) = edge_of_slot(s);
+                    (origin + l, axis as u8)
+                })
+            })
+            .collect();
         assert_eq!(got, edges);
     }
 }

@@ -264,6 +264,14 @@ impl TsdfMap {
     ) {
         let m = &self.meshes[id as usize];
         let k = camera.intrinsics;
+        // Vertex colours: cached, or computed from the voxels (re-meshing drops them).
+        let computed;
+        let colours: &[[f32; 3]] = if !SHADE || m.has_colours() {
+            &m.colours
+        } else {
+            computed = self.vertex_colours(id);
+            &computed
+        };
         projected.clear();
         projected.extend(m.positions.iter().map(|p| {
             let c = camera_from_world.transform_point(*p);
@@ -293,7 +301,7 @@ impl TsdfMap {
             let t = ScreenTri {
                 p: [a.s, b.s, c.s],
                 inv_z: [1.0 / a.c.z, 1.0 / b.c.z, 1.0 / c.c.z],
-                col: if SHADE { tri.map(|i| Vec3::from_array(m.colours[i as usize])) } else { [Vec3::ZERO; 3] },
+                col: if SHADE { tri.map(|i| Vec3::from_array(colours[i as usize])) } else { [Vec3::ZERO; 3] },
                 back: SHADE && (b.c - a.c).cross(c.c - a.c).dot(a.c) > 0.0,
             };
             raster_tri::<SHADE>(&t, [x0 as usize, x1 as usize, y0 as usize, y1 as usize], far, zb);

@@ -92,6 +92,10 @@ fn rasterized_depth_matches_analytic_depth() {
     assert_eq!(one.install(|| map.rasterize_depth(&cam)), r.depth_m);
     let three = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
     assert_eq!(three.install(|| map.rasterize(&cam)), r);
+    // Vertex colours are computed on the fly by the rasterizer until an extraction caches
+    // them: both give the same picture.
+    assert!(!map.extract_mesh(1.0).colours.is_empty());
+    assert_eq!(map.rasterize(&cam), r);
 }
 
 #[test]
