@@ -93,12 +93,12 @@ fn bench_clevr() {
     for i in 0..steps {
         let c0 = cpu_ms();
         let t0 = Instant::now();
-        let rendered = map.render(&cams[i]);
+        let rendered = map.render_depth(&cams[i]);
         let c1 = cpu_ms();
         let t1 = Instant::now();
         let sources: Vec<SourceView> =
             (i.saturating_sub(5)..i).map(|j| SourceView { camera: &cams[j], frame: &frames[j] }).collect();
-        let warped = warp_colour(&cams[i], &rendered.depth_m, &sources, &WarpConfig::default());
+        let warped = warp_colour(&cams[i], &rendered, &sources, &WarpConfig::default());
         let c2 = cpu_ms();
         let t2 = Instant::now();
         map.integrate(&frames[i], &cams[i]);

@@ -92,6 +92,8 @@ struct ScreenTri {
 #[derive(Debug, Clone, Copy)]
 struct ProjVertex {
     c: Vec3,
+    /// `1 / c.z`
+    inv_z: f32,
     s: Vec2,
     ceil: [i32; 2],
     floor: [i32; 2],
@@ -282,7 +284,7 @@ impl TsdfMap {
             // triangles are dropped by the near test below).
             let q = s.clamp(Vec2::splat(-1.0e9), Vec2::splat(1.0e9));
             let ceil = [-floor_i32(-q.x), -floor_i32(-q.y)];
-            ProjVertex { c, s, ceil, floor: [floor_i32(q.x), floor_i32(q.y)] }
+            ProjVertex { c, inv_z: iz, s, ceil, floor: [floor_i32(q.x), floor_i32(q.y)] }
         }));
         let (w1, h1) = (k.width as i32 - 1, k.height as i32 - 1);
         for tri in &m.triangles {
@@ -300,7 +302,7 @@ impl TsdfMap {
             }
             let t = ScreenTri {
                 p: [a.s, b.s, c.s],
-                inv_z: [1.0 / a.c.z, 1.0 / b.c.z, 1.0 / c.c.z],
+                inv_z: [a.inv_z, b.inv_z, c.inv_z],
                 col: if SHADE { tri.map(|i| Vec3::from_array(colours[i as usize])) } else { [Vec3::ZERO; 3] },
                 back: SHADE && (b.c - a.c).cross(c.c - a.c).dot(a.c) > 0.0,
             };
@@ -505,9 +507,25 @@ fn raster_tri<const SHADE: bool>(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], fa
     }
     let inv_area = 1.0 / area;
     let min_inv_z = 1.0 / far;
-    for y in y0..=y1 {
+    for y in y0..y1 + 1 {
         let py = y as f32;
-        for x in x0..=x1 {
+        let row = y * zb.width;
+        if !SHADE {
+            // Depth only: branch-free (tiny triangles make the inside test unpredictable); the
+            // same arithmetic and comparisons as below, so the same depth.
+            for (x, cur) in (x0..x1 + 1).zip(&mut zb.inv_z[row + x0..row + x1 + 1]) {
+                let p = Vec2::new(x as f32, py);
+                let l0 = (c - b).perp_dot(p - b) * inv_area;
+                let l1 = (a - c).perp_dot(p - c) * inv_area;
+                let l2 = (b - a).perp_dot(p - a) * inv_area;
+                let inside = (l0 >= -EDGE_EPS) & (l1 >= -EDGE_EPS) & (l2 >= -EDGE_EPS);
+                let iz = l0 * t.inv_z[0] + l1 * t.inv_z[1] + l2 * t.inv_z[2];
+                let take = inside & (iz > *cur) & (iz >= min_inv_z);
+                *cur = if take { iz } else { *cur };
+            }
+            continue;
+        }
+        for x in x0..x1 + 1 {
             let p = Vec2::new(x as f32, py);
             // Barycentrics (normalised by the signed area so both windings work). A hair of
             // tolerance so pixels exactly on shared edges are never lost to rounding (a double
@@ -519,16 +537,13 @@ fn raster_tri<const SHADE: bool>(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], fa
                 continue;
             }
             let iz = l0 * t.inv_z[0] + l1 * t.inv_z[1] + l2 * t.inv_z[2];
-            let i = y * zb.width + x;
+            let i = row + x;
             if iz > zb.inv_z[i] && iz >= min_inv_z {
                 zb.inv_z[i] = iz;
-                if SHADE {
-                    // Perspective-correct colour: interpolate colour / z, divide by 1 / z.
-                    let col =
-                        (l0 * t.inv_z[0] * t.col[0] + l1 * t.inv_z[1] * t.col[1] + l2 * t.inv_z[2] * t.col[2]) / iz;
-                    zb.colour[i] = col.to_array();
-                    zb.back[i] = t.back;
-                }
+                // Perspective-correct colour: interpolate colour / z, divide by 1 / z.
+                let col = (l0 * t.inv_z[0] * t.col[0] + l1 * t.inv_z[1] * t.col[1] + l2 * t.inv_z[2] * t.col[2]) / iz;
+                zb.colour[i] = col.to_array();
+                zb.back[i] = t.back;
             }
         }
     }
