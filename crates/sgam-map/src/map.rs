@@ -353,9 +353,10 @@ impl TileStats {
 /// distance, every pixel's band segment lies inside the "tube" bounded by the four corner
 /// pixels' rays between planar depths `min - trunc` and `max + trunc`; while the tube's
 /// cross-section is at most half a block, the tube usually lies in few blocks. The tube is the
-/// convex hull of its four edges, so when the cells the edges cross form a box, exactly those
-/// cells meet the tube; otherwise the bounding box of those cells is inserted (a superset).
-/// Either way every block a tile pixel's band crosses is allocated. Tiles are `2s x 2s` pixels
+/// convex hull of its eight corners, so the blocks of the corners' bounding box (computed
+/// directly, no walks) hold it: every block a tile pixel's band crosses is allocated, and
+/// where the tube's edges cross exactly a box of cells those are the same blocks. Tiles are
+/// `2s x 2s` pixels
 /// when their own far end allows it (near surfaces), else `s x s` with `s` chosen for the
 /// depth range's far end. A tile whose depths span more (a depth edge, a slanted surface) is
 /// covered by one tube per occupied truncation-wide depth bin when its bins average 16 pixels or
@@ -409,50 +410,33 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                                   z1: f32,
                                   insert: &mut dyn FnMut(IVec3)| {
                     let (ua, ub, va, vb) = (u0 as f32, (u1 - 1) as f32, v0 as f32, (v1 - 1) as f32);
-                    let mut edge_cells: [IVec3; 32] = [IVec3::ZERO; 32];
-                    let mut n_cells = 0usize;
-                    let mut overflow = false;
-                    let (mut lo, mut hi) = (IVec3::MAX, IVec3::MIN);
+                    // The tube is the convex hull of its 8 corners (4 rays x 2 depths), so it lies
+                    // in their bounding box, and the cells of that box are exactly the cells the
+                    // 4 edges' walks would span (a segment's extreme cells are its end cells).
+                    let (mut lo, mut hi) = (Vec3::splat(f32::INFINITY), Vec3::splat(f32::NEG_INFINITY));
                     for (u, v) in [(ua, va), (ub, va), (ua, vb), (ub, vb)] {
                         let dir = ray(u, v);
-                        walk_cells(origin + dir * z0, origin + dir * z1, |c| {
-                            lo = lo.min(c);
-                            hi = hi.max(c);
-                            if !edge_cells[..n_cells].contains(&c) {
-                                if n_cells < edge_cells.len() {
-                                    edge_cells[n_cells] = c;
-                                    n_cells += 1;
-                                } else {
-                                    overflow = true;
-                                }
-                            }
-                        });
+                        for p in [origin + dir * z0, origin + dir * z1] {
+                            lo = lo.min(p);
+                            hi = hi.max(p);
+                        }
                     }
-                    if n_cells == 0 {
-                        // non-finite rays: nothing to cover, nothing the pixel walk would find
-                        return true;
+                    if !(lo.is_finite() && hi.is_finite()) {
+                        return false;
                     }
-                    // The tube is the convex hull of its edges. When the cells the edges cross
-                    // form a box, that box (convex) holds the whole tube: those cells are exactly
-                    // the blocks it meets. Otherwise insert the cells' bounding box, which also
-                    // holds the tube.
+                    let (lo, hi) = (floor_ivec3(lo), floor_ivec3(hi));
                     let extent = hi - lo + IVec3::ONE;
-                    let box_cells = (extent.x * extent.y * extent.z) as usize;
-                    if !overflow && n_cells == box_cells {
-                        edge_cells[..n_cells].iter().for_each(|c| insert(*c));
-                        true
-                    } else if box_cells <= 64 {
-                        for z in lo.z..=hi.z {
-                            for y in lo.y..=hi.y {
-                                for x in lo.x..=hi.x {
-                                    insert(IVec3::new(x, y, z));
-                                }
+                    if extent.x * extent.y * extent.z > 64 {
+                        return false;
+                    }
+                    for z in lo.z..=hi.z {
+                        for y in lo.y..=hi.y {
+                            for x in lo.x..=hi.x {
+                                insert(IVec3::new(x, y, z));
                             }
                         }
-                        true
-                    } else {
-                        false
                     }
+                    true
                 };
                 // Walks the own band segment of every usable pixel of the rectangle whose depth
                 // passes `select`.

@@ -188,6 +188,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     map.update_mesh(1.0);
     let mut ms = Vec::with_capacity(args.iterations);
+    // map-step: per-stage times (render, warp, integrate, mesh)
+    let mut split: [Vec<f64>; 4] = Default::default();
     // Work done per timed frame (integration and re-meshing), reported as means.
     let (mut touched, mut updated, mut voxels, mut remeshed, mut counted) = (0usize, 0usize, 0usize, 0usize, 0usize);
     let mut count = |s: sgam_map::IntegrateStats, m: usize| {
@@ -231,9 +233,16 @@ pub fn run(args: BenchArgs) -> Result<()> {
             }
             Subject::MapStep => {
                 let depth = map.render_depth(cam);
+                let t1 = Instant::now();
                 std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
+                let t2 = Instant::now();
                 let s = map.integrate(frame, cam);
+                let t3 = Instant::now();
                 let m = map.update_mesh(1.0);
+                let t4 = Instant::now();
+                for (stage, (a, b)) in split.iter_mut().zip([(t, t1), (t1, t2), (t2, t3), (t3, t4)]) {
+                    stage.push((b - a).as_secs_f64() * 1e3);
+                }
                 count(s, m);
             }
             Subject::Synth => {
@@ -249,6 +258,11 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     let subject = format!("{:?}", args.subject).to_lowercase();
     let mut extra = json!({ "blocks": map.block_count() });
+    if !split[0].is_empty() {
+        for (name, v) in ["render_ms", "warp_ms", "integrate_ms", "mesh_ms"].iter().zip(&split) {
+            extra[*name] = json!(crate::fuse::median(v));
+        }
+    }
     if counted > 0 {
         let mean = |x: usize| (x as f64 / counted as f64).round();
         extra["blocks_touched"] = json!(mean(touched));
