@@ -288,7 +288,7 @@ impl TsdfMap {
         }));
         let (w1, h1) = (k.width as i32 - 1, k.height as i32 - 1);
         for tri in &m.triangles {
-            let [a, b, c] = tri.map(|i| projected[i as usize]);
+            let [a, b, c] = tri.map(|i| &projected[i as usize]);
             if a.c.z < near || b.c.z < near || c.c.z < near {
                 continue;
             }
