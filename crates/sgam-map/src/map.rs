@@ -424,8 +424,9 @@ fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &Tsdf
                         return false;
                     }
                     let (lo, hi) = (floor_ivec3(lo), floor_ivec3(hi));
-                    let extent = hi - lo + IVec3::ONE;
-                    if extent.x * extent.y * extent.z > 64 {
+                    // in i64: far-away (saturated) corners must not overflow
+                    let extent = (hi.as_i64vec3() - lo.as_i64vec3()).max(glam::I64Vec3::ZERO) + glam::I64Vec3::ONE;
+                    if extent.max_element() > 64 || extent.element_product() > 64 {
                         return false;
                     }
                     for z in lo.z..=hi.z {

@@ -91,7 +91,8 @@ impl<'a> Neighbourhood<'a> {
         self.locate(l).map_or(Voxel::EMPTY.colour, |(b, r, x)| std::array::from_fn(|ch| b.planes.colour[ch][r][x]))
     }
 
-    /// Where along its edge a vertex lies (fraction from the start point) and its colour.
+    /// Where along its edge (from grid point `local` along `axis`) a vertex lies: the fraction
+    /// from the start point.
     #[inline]
     fn crossing(&self, local: IVec3, axis: usize) -> f32 {
         let (t0, t1) = (self.tsdf(local), self.tsdf(local + AXIS_STEP[axis]));
@@ -142,13 +143,23 @@ struct MeshScratch {
     cache: Box<[u32; GRID * GRID * GRID * 3]>,
     /// Slots of `cache` set by the current block (reset after it).
     used: Vec<u16>,
+    /// Tsdf of the gather grid's points, `x + 9 (y + 9 z)`; valid in the grid rows the current
+    /// block gathered (the only ones its crossing cells read).
+    tsdf: Box<[f32; GRID * GRID * GRID]>,
 }
 
 impl MeshScratch {
     fn new() -> Self {
-        Self { cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]), used: Vec::new() }
+        Self {
+            cache: Box::new([u32::MAX; GRID * GRID * GRID * 3]),
+            used: Vec::new(),
+            tsdf: Box::new([Voxel::EMPTY.tsdf; GRID * GRID * GRID]),
+        }
     }
 }
+
+/// Gather-grid index step along each axis.
+const GRID_STEP: [usize; 3] = [1, GRID, GRID * GRID];
 
 impl TsdfMap {
     /// Re-meshes (marching cubes) the blocks whose cells may have changed since the last call:
@@ -388,16 +399,19 @@ impl TsdfMap {
                 let oyz = ((y == GRID - 1) as usize) << 1 | ((z == GRID - 1) as usize) << 2;
                 let r = y % 8 + 8 * (z % 8);
                 let (mut valid, mut neg) = (0u16, 0u16);
+                let at = GRID * (y + GRID * z);
                 if let Some(b) = hood.blocks[oyz] {
                     let (t, w) = (f32x8::new(b.planes.tsdf[r]), f32x8::new(b.planes.weight[r]));
                     let ok = w.simd_gt(zero) & w.simd_ge(threshold);
                     valid = ok.to_bitmask() as u16;
                     neg = (ok & t.simd_lt(zero)).to_bitmask() as u16;
+                    scratch.tsdf[at..at + 8].copy_from_slice(&b.planes.tsdf[r]);
                 }
                 if let Some(b) = hood.blocks[oyz | 1] {
                     let (t, w) = (b.planes.tsdf[r][0], b.planes.weight[r][0]);
                     valid |= (usable(w) as u16) << 8;
                     neg |= ((usable(w) && t < 0.0) as u16) << 8;
+                    scratch.tsdf[at + 8] = t;
                 }
                 valid_rows[y + GRID * z] = valid;
                 neg_rows[y + GRID * z] = neg;
@@ -406,7 +420,7 @@ impl TsdfMap {
         let vs = self.config.voxel_size_m;
         let origin = key * BLOCK_SIZE;
         let cases = &table().cases;
-        let MeshScratch { cache, used } = scratch;
+        let MeshScratch { cache, used, tsdf } = scratch;
         for z in 0..BLOCK_SIZE as usize {
             for y in 0..BLOCK_SIZE as usize {
                 if !cell_rows[y + 8 * z] {
@@ -436,7 +450,9 @@ impl TsdfMap {
                                 cache[slot] = mesh.positions.len() as u32;
                                 used.push(slot as u16);
                                 let local = cell + corner;
-                                let t = hood.crossing(local, axis);
+                                // the edge's end points are usable grid points (gathered)
+                                let (t0, t1) = (tsdf[base + start], tsdf[base + start + GRID_STEP[axis]]);
+                                let t = t0 / (t0 - t1);
                                 let mut p = ((origin + local).as_vec3() + Vec3::splat(0.5)) * vs;
                                 p[axis] += t * vs;
                                 mesh.positions.push(p);

@@ -3,8 +3,9 @@
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use sgam_core::{Camera, Image, Rigid3, Vec2};
+use wide::{bytemuck::cast, f32x8, i32x8};
 
-use crate::block::{block_of_voxel, floor_i32, floor_ivec3, local_index, voxel_in_block, Block, Voxel};
+use crate::block::{block_of_voxel, floor_ivec3, local_index, voxel_in_block, Block, Voxel};
 use crate::TsdfMap;
 
 /// A rendered view of the map at a pinhole camera.
@@ -97,6 +98,51 @@ struct ProjVertex {
     s: Vec2,
     ceil: [i32; 2],
     floor: [i32; 2],
+}
+
+/// Projects mesh vertices into `out` (cleared first), 8 at a time (`wide`): camera-space
+/// position, `1/z`, pixel position and the pixel-centre range a triangle's bounding box is built
+/// from (clamped to +-1e9 first: vertices at or behind the camera plane project to infinities
+/// or NaN; their triangles are dropped by the near test).
+fn project_vertices(positions: &[Vec3], camera_from_world: &Rigid3, camera: &Camera, out: &mut Vec<ProjVertex>) {
+    let k = camera.intrinsics;
+    let (r, t) = (camera_from_world.rotation, camera_from_world.translation);
+    let splat = f32x8::splat;
+    let (lo, hi) = (splat(-1.0e9), splat(1.0e9));
+    // floor for |x| <= 1e9: truncation, minus one where it rounded up
+    let floor = |x: f32x8| {
+        let i = x.fast_trunc_int();
+        (i + cast::<f32x8, i32x8>(i.round_float().simd_gt(x))).to_array()
+    };
+    out.clear();
+    out.reserve(positions.len());
+    for chunk in positions.chunks(8) {
+        let (mut x, mut y, mut z) = ([0.0f32; 8], [0.0f32; 8], [0.0f32; 8]);
+        for (l, p) in chunk.iter().enumerate() {
+            (x[l], y[l], z[l]) = (p.x, p.y, p.z);
+        }
+        let (x, y, z) = (f32x8::new(x), f32x8::new(y), f32x8::new(z));
+        // rotation * p + translation, in glam's order of operations
+        let row = |a: Vec3, b: f32| splat(a.x) * x + splat(a.y) * y + splat(a.z) * z + splat(b);
+        let cx = row(Vec3::new(r.x_axis.x, r.y_axis.x, r.z_axis.x), t.x);
+        let cy = row(Vec3::new(r.x_axis.y, r.y_axis.y, r.z_axis.y), t.y);
+        let cz = row(Vec3::new(r.x_axis.z, r.y_axis.z, r.z_axis.z), t.z);
+        let iz = splat(1.0) / cz;
+        let sx = splat(k.fx) * cx * iz + splat(k.cx);
+        let sy = splat(k.fy) * cy * iz + splat(k.cy);
+        // NaN clamps to the lower bound (like `f32::max`)
+        let (qx, qy) = (sx.max(lo).min(hi), sy.max(lo).min(hi));
+        let (floor_x, floor_y) = (floor(qx), floor(qy));
+        let (neg_ceil_x, neg_ceil_y) = (floor(-qx), floor(-qy));
+        let [cx, cy, cz, iz, sx, sy] = [cx, cy, cz, iz, sx, sy].map(|v| v.to_array());
+        out.extend((0..chunk.len()).map(|l| ProjVertex {
+            c: Vec3::new(cx[l], cy[l], cz[l]),
+            inv_z: iz[l],
+            s: Vec2::new(sx[l], sy[l]),
+            ceil: [-neg_ceil_x[l], -neg_ceil_y[l]],
+            floor: [floor_x[l], floor_y[l]],
+        }));
+    }
 }
 
 /// A ray hit: planar depth (metres, 0 = none) and colour.
@@ -274,18 +320,7 @@ impl TsdfMap {
             computed = self.vertex_colours(id);
             &computed
         };
-        projected.clear();
-        projected.extend(m.positions.iter().map(|p| {
-            let c = camera_from_world.transform_point(*p);
-            let iz = 1.0 / c.z;
-            let s = Vec2::new(k.fx * c.x * iz + k.cx, k.fy * c.y * iz + k.cy);
-            // The pixel-centre range a triangle's bounding box is built from, once per vertex
-            // (clamped: vertices at or behind the camera plane project to infinities; their
-            // triangles are dropped by the near test below).
-            let q = s.clamp(Vec2::splat(-1.0e9), Vec2::splat(1.0e9));
-            let ceil = [-floor_i32(-q.x), -floor_i32(-q.y)];
-            ProjVertex { c, inv_z: iz, s, ceil, floor: [floor_i32(q.x), floor_i32(q.y)] }
-        }));
+        project_vertices(&m.positions, camera_from_world, camera, projected);
         let (w1, h1) = (k.width as i32 - 1, k.height as i32 - 1);
         for tri in &m.triangles {
             let [a, b, c] = tri.map(|i| &projected[i as usize]);
@@ -545,6 +580,48 @@ fn raster_tri<const SHADE: bool>(t: &ScreenTri, [x0, x1, y0, y1]: [usize; 4], fa
                 zb.colour[i] = col.to_array();
                 zb.back[i] = t.back;
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::block::floor_i32;
+    use sgam_core::Intrinsics;
+
+    /// The 8-lane vertex projection against the scalar formulas, including vertices behind,
+    /// on and far off the camera plane, and NaN.
+    #[test]
+    fn vertex_projection_matches_scalar_formulas() {
+        let k = Intrinsics::try_new(64, 48, 50.0, 52.0, 31.5, 23.5).unwrap();
+        let camera =
+            Camera::new(k, Rigid3::look_at(Vec3::new(0.1, -0.3, 0.2), Vec3::new(0.4, 2.0, 1.0), Vec3::Z).unwrap());
+        let camera_from_world = camera.world_from_camera.inverse();
+        let eye = camera.world_from_camera.translation;
+        let mut positions: Vec<Vec3> = (0..37)
+            .map(|i| Vec3::new((i as f32 * 0.37).sin() * 3.0, 2.0 + (i as f32 * 0.11).cos(), (i % 5) as f32 * 0.4))
+            .collect();
+        positions.extend([
+            eye,
+            eye + Vec3::new(1e-12, 0.0, 0.0),
+            Vec3::splat(1e30),
+            Vec3::NAN,
+            Vec3::new(0.0, -5.0, 0.0),
+        ]);
+        let mut out = Vec::new();
+        project_vertices(&positions, &camera_from_world, &camera, &mut out);
+        assert_eq!(out.len(), positions.len());
+        for (p, v) in positions.iter().zip(&out) {
+            let c = camera_from_world.transform_point(*p);
+            let iz = 1.0 / c.z;
+            let s = Vec2::new(k.fx * c.x * iz + k.cx, k.fy * c.y * iz + k.cy);
+            let q = s.clamp(Vec2::splat(-1.0e9), Vec2::splat(1.0e9));
+            let same = |a: f32, b: f32| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
+            assert!(same(v.c.x, c.x) && same(v.c.y, c.y) && same(v.c.z, c.z), "{p}: {:?} vs {c}", v.c);
+            assert!(same(v.inv_z, iz) && same(v.s.x, s.x) && same(v.s.y, s.y), "{p}");
+            assert_eq!(v.floor, [floor_i32(q.x), floor_i32(q.y)], "{p}: {q}");
+            assert_eq!(v.ceil, [-floor_i32(-q.x), -floor_i32(-q.y)], "{p}: {q}");
         }
     }
 }
