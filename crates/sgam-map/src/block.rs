@@ -1,6 +1,7 @@
 //! Dense 8^3 voxel blocks and the integer grid they live on.
 
 use glam::IVec3;
+use wide::{bytemuck::cast, f32x8, i32x8};
 
 /// Voxels per block edge.
 pub const BLOCK_SIZE: i32 = 8;
@@ -116,6 +117,13 @@ pub(crate) fn floor_i32(x: f32) -> i32 {
     let i = x as i32;
     // saturating: below `i32::MIN` (e.g. -inf) `i` is already `i32::MIN`
     i.saturating_sub(((i as f32) > x) as i32)
+}
+
+/// [`floor_i32`] of 8 lanes, for `|x| < 2^31` (truncation, minus one where it rounded up).
+#[inline(always)]
+pub(crate) fn floor_i32x8(x: f32x8) -> i32x8 {
+    let i = x.fast_trunc_int();
+    i + cast::<f32x8, i32x8>(i.round_float().simd_gt(x))
 }
 
 /// Component-wise [`floor_i32`].

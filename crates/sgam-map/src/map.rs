@@ -357,9 +357,9 @@ impl TileStats {
 /// directly, no walks) hold it: every block a tile pixel's band crosses is allocated, and
 /// where the tube's edges cross exactly a box of cells those are the same blocks. Tiles are
 /// `2s x 2s` pixels when their own far end allows it (near surfaces), else `s x s` with `s`
-/// chosen for the depth range's far end. A tile whose depths span more (a depth edge, a slanted surface) is
-/// covered by one tube per occupied truncation-wide depth bin when its bins average 16 pixels or
-/// more. Every pixel's own segment is walked instead where there is no tiling (`s = 1`), where
+/// chosen for the depth range's far end. A tile whose depths span more (a depth edge, a
+/// slanted surface) is covered by one tube per occupied truncation-wide depth bin when its bins
+/// average 16 pixels or more. Every pixel's own segment is walked instead where there is no tiling (`s = 1`), where
 /// bins hold fewer pixels, and where a tube would need more than 64 cells.
 fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
     let trunc = cfg.trunc_m();

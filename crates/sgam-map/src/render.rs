@@ -3,9 +3,9 @@
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use sgam_core::{Camera, Image, Rigid3, Vec2};
-use wide::{bytemuck::cast, f32x8, i32x8};
+use wide::f32x8;
 
-use crate::block::{block_of_voxel, floor_ivec3, local_index, voxel_in_block, Block, Voxel};
+use crate::block::{block_of_voxel, floor_i32x8, floor_ivec3, local_index, voxel_in_block, Block, Voxel};
 use crate::TsdfMap;
 
 /// A rendered view of the map at a pinhole camera.
@@ -109,11 +109,7 @@ fn project_vertices(positions: &[Vec3], camera_from_world: &Rigid3, camera: &Cam
     let (r, t) = (camera_from_world.rotation, camera_from_world.translation);
     let splat = f32x8::splat;
     let (lo, hi) = (splat(-1.0e9), splat(1.0e9));
-    // floor for |x| <= 1e9: truncation, minus one where it rounded up
-    let floor = |x: f32x8| {
-        let i = x.fast_trunc_int();
-        (i + cast::<f32x8, i32x8>(i.round_float().simd_gt(x))).to_array()
-    };
+    let floor = |x: f32x8| floor_i32x8(x).to_array();
     out.clear();
     out.reserve(positions.len());
     for chunk in positions.chunks(8) {

@@ -2,9 +2,9 @@
 
 use rayon::prelude::*;
 
-use crate::block::floor_i32;
+use crate::block::{floor_i32, floor_i32x8};
 use sgam_core::{is_valid_depth, Camera, Image, RgbdFrame, Rigid3, Vec2, Vec3};
-use wide::{bytemuck::cast, f32x8, i32x8};
+use wide::f32x8;
 
 /// Tolerances and policy of [`warp_colour`].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -119,6 +119,9 @@ struct Prepared<'a> {
     /// Distance between the source and target camera centres.
     dist: f32,
     source_from_target: Rigid3,
+    /// `source_from_target.rotation * (1 / fx_target, 0, 0)`: the step of a target ray (z = 1)
+    /// from one pixel to the next along a row, in the source frame.
+    ray_step: Vec3,
     fx: f32,
     fy: f32,
     cx: f32,
@@ -132,10 +135,12 @@ struct Prepared<'a> {
 impl<'a> Prepared<'a> {
     fn new(index: usize, s: &SourceView<'a>, target: &Camera) -> Self {
         let k = s.camera.intrinsics;
+        let source_from_target = s.camera.world_from_camera.inverse() * target.world_from_camera;
         Self {
             index,
             dist: s.camera.centre_world().distance(target.centre_world()),
-            source_from_target: s.camera.world_from_camera.inverse() * target.world_from_camera,
+            source_from_target,
+            ray_step: source_from_target.rotation * Vec3::new(1.0 / target.intrinsics.fx, 0.0, 0.0),
             fx: k.fx,
             fy: k.fy,
             cx: k.cx,
@@ -181,22 +186,16 @@ impl<'a, 'b> WarpKernel<'a, 'b> {
         // Target ray (z = 1) of pixel (u, v) is `(x0 + u / fx, y, 1)`; in each source frame the
         // point at planar depth z is `z * (a + u b) + t` with `a = R ray(0, v)`, `b = R e_x / fx`.
         let ray0 = Vec3::new(-self.cx / self.fx, (v as f32 - self.cy) / self.fy, 1.0);
-        let du = Vec3::new(1.0 / self.fx, 0.0, 0.0);
-        let rows: Vec<(Vec3, Vec3)> = self
-            .sources
-            .iter()
-            .map(|s| (s.source_from_target.rotation * ray0, s.source_from_target.rotation * du))
-            .collect();
+        let rows: Vec<(Vec3, Vec3)> =
+            self.sources.iter().map(|s| (s.source_from_target.rotation * ray0, s.ray_step)).collect();
         let lane = f32x8::new([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0]);
         let (zero, half) = (f32x8::splat(0.0), f32x8::splat(0.5));
-        let max = f32x8::splat(f32::MAX);
         for u0 in (0..depth.len()).step_by(L) {
             let n = L.min(depth.len() - u0);
             let mut z = [0.0f32; L];
             z[..n].copy_from_slice(&depth[u0..u0 + n]);
             let z = f32x8::new(z);
-            // is_valid_depth, lane-wise: NaN and infinities fail one of the comparisons
-            let valid = z.simd_gt(zero) & z.simd_le(max);
+            let valid = valid_depth8(z);
             if valid.to_bitmask() == 0 {
                 continue;
             }
@@ -271,6 +270,13 @@ impl<'a, 'b> WarpKernel<'a, 'b> {
 /// SIMD width of the warp kernel.
 const L: usize = 8;
 
+/// [`is_valid_depth`] of 8 lanes (all bits set where valid): NaN and infinities fail one of the
+/// comparisons.
+#[inline(always)]
+fn valid_depth8(d: f32x8) -> f32x8 {
+    d.simd_gt(f32x8::splat(0.0)) & d.simd_le(f32x8::splat(f32::MAX))
+}
+
 impl Prepared<'_> {
     /// [`sample_depth`] for the lanes in `lanes` (bit mask; their locations lie inside the
     /// image): the value and whether there is one. The four neighbours are read per lane, the
@@ -278,11 +284,7 @@ impl Prepared<'_> {
     #[inline]
     fn sample_depth8(&self, us: f32x8, vs: f32x8, lanes: u32) -> (f32x8, f32x8) {
         let (w, h) = (self.width as i32, self.height as i32);
-        let floor = |x: f32x8| {
-            let t = x.fast_trunc_int();
-            t + cast::<f32x8, i32x8>(t.round_float().simd_gt(x))
-        };
-        let (x0, y0) = (floor(us), floor(vs));
+        let (x0, y0) = (floor_i32x8(us), floor_i32x8(vs));
         let (fx, fy) = (us - x0.round_float(), vs - y0.round_float());
         let (x0a, y0a) = (x0.to_array(), y0.to_array());
         let data = &self.depth.data;
@@ -305,8 +307,7 @@ impl Prepared<'_> {
                 direct_bits |= 1 << l;
             }
         }
-        let (zero, max) = (f32x8::splat(0.0), f32x8::splat(f32::MAX));
-        let ok = |d: f32x8| d.simd_gt(zero) & d.simd_le(max);
+        let ok = valid_depth8;
         let [d00, d10, d01, d11] = q.map(f32x8::new);
         let (v00, v10, v01, v11) = (ok(d00), ok(d10), ok(d01), ok(d11));
         let top = d00 + fx * (d10 - d00);
@@ -323,8 +324,8 @@ impl Prepared<'_> {
         let has = all4 | ok(nearest);
         // scalar-path lanes
         let direct = f32x8::new(direct);
-        let is_direct =
-            f32x8::new(std::array::from_fn(|l| if direct_bits >> l & 1 == 1 { 1.0 } else { 0.0 })).simd_gt(zero);
+        let is_direct = f32x8::new(std::array::from_fn(|l| if direct_bits >> l & 1 == 1 { 1.0 } else { 0.0 }))
+            .simd_gt(f32x8::splat(0.0));
         (is_direct.select(direct, value), is_direct.select(ok(direct), has))
     }
 }
