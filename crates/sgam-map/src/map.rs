@@ -313,31 +313,34 @@ impl TileStats {
 
     /// Over the usable `depth[v * w + u]` for `u in u0..u1`, `v in v0..v1`.
     fn of(depth: &[f32], usable: Usable, w: usize, (u0, u1): (usize, usize), (v0, v1): (usize, usize)) -> Self {
-        // Eight lanes of branch-free selects (vectorised); `f32::min` would add a NaN blend.
-        const L: usize = 8;
-        let (mut mn, mut mx, mut n) = ([f32::INFINITY; L], [f32::NEG_INFINITY; L], [0u32; L]);
-        let mut add = |i: usize, d: f32| {
-            let ok = usable.ok(d);
-            mn[i] = if ok & (d < mn[i]) { d } else { mn[i] };
-            mx[i] = if ok & (d > mx[i]) { d } else { mx[i] };
-            n[i] += ok as u32;
+        // Eight lanes of masked selects (`wide`); a comparison with NaN is false, so unusable
+        // readings never enter the minimum or maximum.
+        let (lo, hi) = (f32x8::splat(usable.lo), f32x8::splat(usable.hi));
+        let (mut mn, mut mx) = (f32x8::splat(f32::INFINITY), f32x8::splat(f32::NEG_INFINITY));
+        let mut n = i32x8::splat(0);
+        let mut add = |d: f32x8| {
+            let ok = d.simd_ge(lo) & d.simd_le(hi);
+            mn = (ok & d.simd_lt(mn)).select(d, mn);
+            mx = (ok & d.simd_gt(mx)).select(d, mx);
+            n -= cast::<f32x8, i32x8>(ok);
         };
         for v in v0..v1 {
             let row = &depth[v * w + u0..v * w + u1];
-            let mut chunks = row.chunks_exact(L);
+            let mut chunks = row.chunks_exact(8);
             for c in &mut chunks {
-                for (i, &d) in c.iter().enumerate() {
-                    add(i, d);
-                }
+                add(f32x8::new(c.try_into().unwrap_or([f32::NAN; 8])));
             }
-            for (i, &d) in chunks.remainder().iter().enumerate() {
-                add(i, d);
+            let rest = chunks.remainder();
+            if !rest.is_empty() {
+                let mut c = [f32::NAN; 8];
+                c[..rest.len()].copy_from_slice(rest);
+                add(f32x8::new(c));
             }
         }
         Self {
-            min: mn.iter().fold(f32::INFINITY, |a, &b| a.min(b)),
-            max: mx.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b)),
-            count: n.iter().map(|&c| c as usize).sum(),
+            min: mn.to_array().iter().fold(f32::INFINITY, |a, &b| a.min(b)),
+            max: mx.to_array().iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b)),
+            count: n.to_array().iter().map(|&c| c as usize).sum(),
         }
     }
 
@@ -709,6 +712,11 @@ impl<'a> UpdateContext<'a> {
         let mut n = 0usize;
         let mut flags = 0u8;
         let planes = &mut *block.planes;
+        // Pass 1: project every row and gather its depth readings. It has no data-dependent
+        // branch, so the gathers' cache misses overlap instead of each stalling a branch.
+        let mut pixels = [[0u32; N]; ROWS];
+        let mut depths = [zero; ROWS];
+        let mut planar = [zero; ROWS];
         for row_index in 0..ROWS {
             let (y, z) = (row_index % N, row_index / N);
             let p = base + dy * y as f32 + dz * z as f32;
@@ -721,15 +729,19 @@ impl<'a> UpdateContext<'a> {
             let inside = pz.simd_gt(zero) & u.simd_ge(zero) & v.simd_ge(zero) & u.simd_lt(u_end) & v.simd_lt(v_end);
             let at = (v.fast_trunc_int() * width + u.fast_trunc_int()) & cast::<f32x8, i32x8>(inside);
             let at = at.to_array();
-            let mut pix = [0usize; N];
             let mut d = [0.0f32; N];
             for i in 0..N {
-                pix[i] = (at[i] as usize).min(last);
-                d[i] = depth[pix[i]];
+                let pix = (at[i] as usize).min(last);
+                pixels[row_index][i] = pix as u32;
+                d[i] = depth[pix];
             }
-            let zc = inside.select(pz, nan);
-            let d = f32x8::new(d);
-            let sdf = d - zc;
+            depths[row_index] = f32x8::new(d);
+            planar[row_index] = inside.select(pz, nan);
+        }
+        // Pass 2: the updates.
+        for row_index in 0..ROWS {
+            let d = depths[row_index];
+            let sdf = d - planar[row_index];
             let take = sdf.simd_ge(neg_trunc) & d.simd_ge(lo) & d.simd_le(hi);
             let bits = take.to_bitmask();
             if bits == 0 {
@@ -749,7 +761,7 @@ impl<'a> UpdateContext<'a> {
             if has_colour {
                 let mut c = [[0.0f32; N]; 3];
                 for i in 0..N {
-                    let rgb = colour[pix[i]];
+                    let rgb = colour[pixels[row_index][i] as usize];
                     for ch in 0..3 {
                         c[ch][i] = rgb[ch];
                     }
@@ -816,6 +828,40 @@ mod tests {
             // sampled ones (corner grazing within f32 rounding).
             assert!(sampled.is_subset(&visited), "{a} -> {b}: {sampled:?} vs {visited:?}");
             assert!(visited.len() <= sampled.len() + 2, "{a} -> {b}: {sampled:?} vs {visited:?}");
+        }
+    }
+
+    #[test]
+    fn tile_stats_match_a_scalar_fold() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let usable = Usable { lo: 0.1, hi: 4.0 };
+        let specials = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -1.0, 0.0, 0.1, 4.0, 4.0001, 1e-40];
+        let (w, h) = (37usize, 11usize);
+        let depth: Vec<f32> = (0..w * h)
+            .map(|_| {
+                if rng.random_bool(0.2) {
+                    specials[rng.random_range(0..specials.len())]
+                } else {
+                    rng.random_range(0.0..5.0)
+                }
+            })
+            .collect();
+        // rectangles with and without a remainder after whole 8-pixel chunks, and empty ones
+        for (us, vs) in
+            [((0, 37), (0, 11)), ((3, 11), (2, 9)), ((8, 24), (0, 1)), ((5, 5), (0, 11)), ((36, 37), (10, 11))]
+        {
+            let t = TileStats::of(&depth, usable, w, us, vs);
+            let (mut mn, mut mx, mut n) = (f32::INFINITY, f32::NEG_INFINITY, 0);
+            for v in vs.0..vs.1 {
+                for &d in &depth[v * w + us.0..v * w + us.1] {
+                    if usable.ok(d) {
+                        mn = mn.min(d);
+                        mx = mx.max(d);
+                        n += 1;
+                    }
+                }
+            }
+            assert_eq!((t.min, t.max, t.count), (mn, mx, n), "rectangle {us:?} x {vs:?}");
         }
     }
 
