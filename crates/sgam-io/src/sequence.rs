@@ -376,15 +376,19 @@ impl Sequence {
         let f = self.frames.get(i).ok_or_else(|| {
             IoError::invalid(&self.root, format!("frame index {i} out of range (the sequence has {})", self.len()))
         })?;
-        let colour = read_rgb(&f.colour_path)?;
-        let mut depth: Image<f32> = match f.depth {
-            DepthEncoding::Png(scale) => read_depth_png_scaled(&f.depth_path, scale)?,
-            DepthEncoding::NpyPlanar | DepthEncoding::NpyRayLength => {
-                let mut d = crate::read_npy_f32(&f.depth_path)?;
-                sanitize_float_depth(&f.depth_path, &mut d)?;
-                d
-            }
-        };
+        // The two images decode in parallel (a colour error is reported first).
+        let (colour, depth) = rayon::join(
+            || read_rgb(&f.colour_path),
+            || match f.depth {
+                DepthEncoding::Png(scale) => read_depth_png_scaled(&f.depth_path, scale),
+                DepthEncoding::NpyPlanar | DepthEncoding::NpyRayLength => {
+                    let mut d = crate::read_npy_f32(&f.depth_path)?;
+                    sanitize_float_depth(&f.depth_path, &mut d)?;
+                    Ok(d)
+                }
+            },
+        );
+        let (colour, mut depth): (_, Image<f32>) = (colour?, depth?);
         if colour.size() != depth.size() {
             return Err(IoError::invalid(
                 &f.depth_path,
