@@ -9,6 +9,9 @@
 //!   point-to-triangle distance through a uniform grid), [`chamfer`].
 //! - Scene metrics ([`scene`]) compare sets of regions (occupancy histograms) with the
 //!   point-cloud GAN metrics of Achlioptas et al.: JSD, MMD, COV, MinDist, 1-NNA.
+//! - World metrics ([`world`]) read a whole generated mesh (z up) as a 10 cm height field and
+//!   report, outside the seed's footprint, objects per 100 m^2, their footprints and colour
+//!   saturation, and ground roughness (DESIGN.md §7 "World level").
 //! - [`kid`]: kernel inception distance on any feature vectors (weight-free when the features
 //!   come from our own encoder).
 
@@ -16,6 +19,7 @@ mod geometry;
 mod image;
 pub mod kid;
 pub mod scene;
+pub mod world;
 
 pub use geometry::{chamfer, median, point_to_mesh_distances};
 pub use image::{disparity_l1, psnr, ssim, ssim_map};

@@ -69,6 +69,25 @@ pub struct ModelConfig {
     pub beta: f32,
     /// Depth coding of the disparity channel.
     pub depth: DepthCoding,
+    /// Two extra input channels with each pixel's viewing ray, `2 (u - cx) / fx` and
+    /// `2 (v - cy) / fy` (OpenCV pixel centres): a conv net cannot otherwise tell which image
+    /// row it looks at, and the ground's depth is fixed by the row. Models trained before this
+    /// option have 5 input channels (`false`).
+    #[serde(default)]
+    pub ray_channels: bool,
+    /// Calibrated code temperature `tau` of a generative (cross-entropy trained) encoder: the
+    /// model's distribution over codes in a latent cell is `softmax(-||z - e_k||^2 / tau)`, and
+    /// sampling at temperature `T` uses `T * tau`. `None` for regression-trained encoders, whose
+    /// distances are not a distribution.
+    #[serde(default)]
+    pub code_tau: Option<f32>,
+    /// A learned code head: a 1x1 conv from the encoder's output to one logit per code, so the
+    /// distribution over codes can be multimodal (ground *or* an object's edge). The paper's
+    /// distance logits `-||z - e_k||^2 / tau` are linear in `z` with weights tied to the
+    /// codebook and can only put mass on codes around one point; the head starts equal to them
+    /// (see `generative::head_from_codebook`) and is trained free.
+    #[serde(default)]
+    pub code_head: bool,
 }
 
 impl ModelConfig {
@@ -91,6 +110,9 @@ impl ModelConfig {
             n_embed: 16384,
             beta: 0.25,
             depth: DepthCoding::clevr(),
+            ray_channels: false,
+            code_tau: None,
+            code_head: false,
         }
     }
 
@@ -115,6 +137,9 @@ impl ModelConfig {
             n_embed: 1024,
             beta: 0.25,
             depth: DepthCoding::clevr(),
+            ray_channels: false,
+            code_tau: None,
+            code_head: false,
         }
     }
 
@@ -136,6 +161,19 @@ impl ModelConfig {
             n_embed: 32,
             beta: 0.25,
             depth: DepthCoding::clevr(),
+            ray_channels: false,
+            code_tau: None,
+            code_head: false,
+        }
+    }
+
+    /// Input channels of the network: RGB, disparity, mask, and the two ray channels when
+    /// [`Self::ray_channels`] is set.
+    pub fn input_channels(&self) -> usize {
+        if self.ray_channels {
+            7
+        } else {
+            5
         }
     }
 
@@ -157,6 +195,11 @@ impl ModelConfig {
             let c = self.ch * m;
             if self.norm_groups == 0 || !c.is_multiple_of(self.norm_groups) {
                 return bad(format!("norm_groups {} does not divide {c} channels", self.norm_groups));
+            }
+        }
+        if let Some(tau) = self.code_tau {
+            if !(tau.is_finite() && tau > 0.0) {
+                return bad(format!("code_tau {tau} must be a positive number"));
             }
         }
         if self.depth.near_m <= 0.0 || self.depth.far_m <= self.depth.near_m {

@@ -14,12 +14,16 @@
 //! - **Weights** are safetensors files keyed by parameter path ([`params`]); f16 for shipping.
 //! - **Quantizer** ([`quantize`]): argmin + straight-through, temperature sampling only in missing
 //!   cells, usage statistics, k-means revival of dead codes.
+//! - **Generative stage 2** ([`generative`]): the encoder trained with cross-entropy over the
+//!   codes the frozen encoder gives the clean target, logits `-||z - e_k||^2 / tau`; the refiner
+//!   samples `softmax(-d / (T tau))` in missing cells, iteratively for large holes.
 //! - **Determinism**: weights are initialised from a seed; sampling and training draw from a
 //!   seeded `ChaCha8Rng` passed in.
 
 pub mod blocks;
 pub mod config;
 pub mod convert;
+pub mod generative;
 pub mod loss;
 pub mod lpips;
 pub mod model;

@@ -256,6 +256,9 @@ pub struct VqModel {
     pub post_quant_conv: Conv2d,
     /// Decoder.
     pub decoder: Decoder,
+    /// Learned code head (1x1 conv `z_channels -> n_embed`), present when
+    /// [`ModelConfig::code_head`] is set.
+    pub code_head: Option<Conv2d>,
 }
 
 impl VqModel {
@@ -265,7 +268,7 @@ impl VqModel {
     pub fn new(config: &ModelConfig, seed: u64, device: &Device) -> Result<Self, ModelError> {
         config.validate()?;
         let model = Self {
-            conv_in: conv(5, 4, 1, 1, 0, device),
+            conv_in: conv(config.input_channels(), 4, 1, 1, 0, device),
             encoder: Encoder::new(config, device),
             quant_conv: conv(config.z_channels, config.embed_dim, 1, 1, 0, device),
             quantize: Quantize {
@@ -275,6 +278,7 @@ impl VqModel {
             },
             post_quant_conv: conv(config.embed_dim, config.z_channels, 1, 1, 0, device),
             decoder: Decoder::new(config, device),
+            code_head: config.code_head.then(|| conv(config.z_channels, config.n_embed, 1, 1, 0, device)),
         };
         Ok(crate::params::init_params(model, seed))
     }
@@ -282,6 +286,13 @@ impl VqModel {
     /// Mask fusion + encoder + quant_conv: `[B, 5, H, W] -> [B, embed_dim, h, w]` (pre-quantization).
     pub fn encode(&self, x: Tensor<4>) -> Tensor<4> {
         self.quant_conv.forward(self.encoder.forward(self.conv_in.forward(x)))
+    }
+
+    /// Code logits of the learned head: `[B, 5|7, H, W] -> [B, n_embed, h, w]`; `None` without
+    /// a head.
+    pub fn code_logits(&self, x: Tensor<4>) -> Option<Tensor<4>> {
+        let head = self.code_head.as_ref()?;
+        Some(head.forward(self.encoder.forward(self.conv_in.forward(x))))
     }
 
     /// post_quant_conv + decoder: `[B, embed_dim, h, w] -> [B, 4, H, W]`.

@@ -10,9 +10,9 @@
 //! clips colour to `[0, 1]` and `s` to `[0, 1]`, so depth lies in `[near, far] - offset`.
 
 use burn::tensor::{Device, Tensor, TensorData};
-use sgam_core::{is_valid_depth, Image, RgbdFrame};
+use sgam_core::{is_valid_depth, Image, Intrinsics, RgbdFrame};
 
-use crate::config::DepthCoding;
+use crate::config::{DepthCoding, ModelConfig};
 use crate::ModelError;
 
 /// Disparity channel value at missing / invalid pixels.
@@ -87,6 +87,35 @@ pub fn pack(
 ) -> Result<Tensor<4>, ModelError> {
     let (values, shape) = pack_values(frames, missing, coding)?;
     Ok(Tensor::from_data(TensorData::new(values, shape), device))
+}
+
+/// Packs frames + masks into the network input of `config`: the 5 channels of [`pack`], and
+/// when [`ModelConfig::ray_channels`] is set two more, each pixel's viewing ray
+/// `2 (u - cx) / fx`, `2 (v - cy) / fy` from `intrinsics` (one per frame; a crop's intrinsics
+/// carry its shifted principal point). Result `[B, 5 or 7, H, W]`.
+pub fn pack_input(
+    frames: &[&RgbdFrame],
+    missing: &[Option<&[bool]>],
+    intrinsics: &[Intrinsics],
+    config: &ModelConfig,
+    device: &Device,
+) -> Result<Tensor<4>, ModelError> {
+    let (values, shape) = pack_values(frames, missing, &config.depth)?;
+    if !config.ray_channels {
+        return Ok(Tensor::from_data(TensorData::new(values, shape), device));
+    }
+    let [b, _, h, w] = shape;
+    if intrinsics.len() != b {
+        return Err(ModelError::Input(format!("{} intrinsics for {b} frames", intrinsics.len())));
+    }
+    let hw = h * w;
+    let mut out = Vec::with_capacity(b * 7 * hw);
+    for (i, k) in intrinsics.iter().enumerate() {
+        out.extend_from_slice(&values[i * 5 * hw..(i + 1) * 5 * hw]);
+        out.extend((0..hw).map(|p| 2.0 * ((p % w) as f32 - k.cx) / k.fx));
+        out.extend((0..hw).map(|p| 2.0 * ((p / w) as f32 - k.cy) / k.fy));
+    }
+    Ok(Tensor::from_data(TensorData::new(out, [b, 7, h, w]), device))
 }
 
 /// Packs target frames into the 4-channel `[B, 4, H, W]` training target (no mask channel;

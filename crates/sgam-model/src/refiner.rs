@@ -10,13 +10,14 @@ use burn::module::Module;
 use burn::tensor::Device;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use sgam_core::{Guidance, Image, Refiner, RgbdFrame};
+use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
 use crate::config::ModelConfig;
+use crate::generative::squared_distances;
 use crate::model::VqModel;
-use crate::packing::{missing_cells, pack, unpack};
+use crate::packing::{missing_cells, pack_input, unpack};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, WeightPrecision};
-use crate::quantize::{quantize, Sampling};
+use crate::quantize::{select_codes, to_host, Sampling};
 use crate::ModelError;
 
 /// Safetensors metadata key holding the [`ModelConfig`] JSON.
@@ -92,6 +93,20 @@ pub struct RefinerOptions {
     /// part of the frame away from the map; `false` reproduces that behaviour.
     #[serde(default = "default_true")]
     pub keep_observed: bool,
+    /// Iterative sampling: missing latent cells drawn per pass (see [`VqRefiner::complete_at`]).
+    #[serde(default = "default_cells_per_pass")]
+    pub cells_per_pass: usize,
+    /// Iterative sampling: at most this many encode/decode passes per frame.
+    #[serde(default = "default_max_passes")]
+    pub max_passes: usize,
+}
+
+fn default_cells_per_pass() -> usize {
+    48
+}
+
+fn default_max_passes() -> usize {
+    4
 }
 
 fn default_true() -> bool {
@@ -100,7 +115,14 @@ fn default_true() -> bool {
 
 impl Default for RefinerOptions {
     fn default() -> Self {
-        Self { sampling: Sampling::Argmin, seed: 0, missing_cell_threshold: 0.5, keep_observed: true }
+        Self {
+            sampling: Sampling::Argmin,
+            seed: 0,
+            missing_cell_threshold: 0.5,
+            keep_observed: true,
+            cells_per_pass: default_cells_per_pass(),
+            max_passes: default_max_passes(),
+        }
     }
 }
 
@@ -114,13 +136,25 @@ pub struct VqRefiner {
     options: RefinerOptions,
     rng: ChaCha8Rng,
     device: Device,
+    trace: SamplingTrace,
+}
+
+/// What the last [`VqRefiner::complete_at`] call chose (for tests and diagnostics).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SamplingTrace {
+    /// The code of every latent cell, row-major.
+    pub codes: Vec<u32>,
+    /// The missing cells committed in each pass, in commit order.
+    pub passes: Vec<Vec<usize>>,
+    /// Latent cells that were missing.
+    pub missing_cells: Vec<bool>,
 }
 
 impl VqRefiner {
     /// Wraps a model.
     pub fn new(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device) -> Self {
         let rng = ChaCha8Rng::seed_from_u64(options.seed);
-        Self { model: model.valid(), config, options, rng, device }
+        Self { model: model.valid(), config, options, rng, device, trace: SamplingTrace::default() }
     }
 
     /// Loads from a safetensors file (+ optional config JSON file) on the default device.
@@ -142,6 +176,11 @@ impl VqRefiner {
         &self.config
     }
 
+    /// What the last completion chose.
+    pub fn trace(&self) -> &SamplingTrace {
+        &self.trace
+    }
+
     /// Changes the sampling options and reseeds the RNG.
     pub fn set_options(&mut self, options: RefinerOptions) {
         self.rng = ChaCha8Rng::seed_from_u64(options.seed);
@@ -149,26 +188,144 @@ impl VqRefiner {
     }
 
     /// Completes one frame: `frame` + `missing` (row-major, true = missing) -> complete frame.
+    /// Models with ray channels need the frame's intrinsics: use [`Self::complete_at`].
     pub fn complete(&mut self, frame: &RgbdFrame, missing: &[bool]) -> Result<RgbdFrame, ModelError> {
+        self.complete_at(frame, missing, None)
+    }
+
+    /// The code selection actually used: for a generative model (`code_tau` set), temperature
+    /// `T` means `T * tau` in squared latent distance (in logits for a code head, `tau = 1`),
+    /// so `T = 1` samples the trained distribution.
+    pub fn effective_sampling(&self) -> Sampling {
+        match (self.options.sampling, self.config.code_tau) {
+            (Sampling::Temperature { temperature, top_k }, Some(tau)) => {
+                Sampling::Temperature { temperature: temperature * tau, top_k }
+            }
+            (s, _) => s,
+        }
+    }
+
+    /// Completes one frame seen through `intrinsics` (required by models with ray channels).
+    ///
+    /// Argmin, or a model without `code_tau`: one pass (encode, select codes, decode). A
+    /// generative model sampling a large hole works MaskGIT-style: each pass draws a code for
+    /// every open missing cell, commits the most confident share of them (all of them on the
+    /// last pass), decodes, and pastes the committed cells' pixels into the guidance as
+    /// observed before re-encoding, so later draws see earlier ones. Passes:
+    /// `ceil(missing cells / cells_per_pass)`, at most `max_passes` — one for the zig-zag's few
+    /// new cells per step.
+    pub fn complete_at(
+        &mut self,
+        frame: &RgbdFrame,
+        missing: &[bool],
+        intrinsics: Option<&Intrinsics>,
+    ) -> Result<RgbdFrame, ModelError> {
         let (w, h) = (frame.width() as usize, frame.height() as usize);
         if missing.len() != w * h {
             return Err(ModelError::Input(format!("mask has {} values for a {w}x{h} frame", missing.len())));
         }
+        let intrinsics = match intrinsics {
+            Some(k) => *k,
+            None if !self.config.ray_channels => Intrinsics::from_fov_x(w as u32, h as u32, 1.0),
+            None => {
+                return Err(ModelError::Input("this model has ray channels and needs the frame's intrinsics".into()))
+            }
+        };
         let f = self.config.downsample_factor();
         let (pw, ph) = (w.div_ceil(f) * f, h.div_ceil(f) * f);
-        let (padded, mask) = pad_frame(frame, missing, pw, ph);
-        let x = pack(&[&padded], &[Some(mask.as_slice())], &self.config.depth, &self.device)?;
+        let (mut work, mut mask) = pad_frame(frame, missing, pw, ph);
         let cells = missing_cells(&mask, pw, ph, f, self.options.missing_cell_threshold);
-        let z = self.model.encode(x);
-        let q = quantize(&self.model, z, self.options.sampling, Some(&cells), self.config.beta, &mut self.rng)?;
-        let out = self.model.decode(q.z_q);
-        let full = unpack(out, &self.config.depth)?.pop().ok_or_else(|| ModelError::Input("empty output".into()))?;
+        let (cw, ch) = (pw / f, ph / f);
+        let sampling = self.effective_sampling();
+        let sampler = (self.config.code_tau.is_some() || self.config.code_head)
+            && matches!(sampling, Sampling::Temperature { .. });
+        let n_missing = cells.iter().filter(|m| **m).count();
+        let passes = if sampler && n_missing > 0 {
+            n_missing.div_ceil(self.options.cells_per_pass.max(1)).clamp(1, self.options.max_passes.max(1))
+        } else {
+            1
+        };
+        let codebook = self.model.quantize.embedding.weight.val();
+        let k = self.config.n_embed;
+        let mut committed: Vec<Option<u32>> = vec![None; cells.len()];
+        let mut codes = Vec::new();
+        let mut passes_log: Vec<Vec<usize>> = Vec::new();
+        for pass in 0..passes {
+            let x = pack_input(&[&work], &[Some(mask.as_slice())], &[intrinsics], &self.config, &self.device)?;
+            // "distances": -logits of the code head, else squared distances to the codes
+            let dist = match self.model.code_logits(x.clone()) {
+                Some(logits) => {
+                    let [_, kk, zh, zw] = logits.dims();
+                    to_host(logits.permute([0, 2, 3, 1]).reshape([zh * zw, kk]).neg())?
+                }
+                None => {
+                    let z = self.model.encode(x);
+                    let [_, d, zh, zw] = z.dims();
+                    let rows = z.permute([0, 2, 3, 1]).reshape([zh * zw, d]);
+                    to_host(squared_distances(rows, codebook.clone()))?
+                }
+            };
+            let open: Vec<bool> = cells.iter().zip(&committed).map(|(m, c)| *m && c.is_none()).collect();
+            let drawn = select_codes(&dist, cells.len(), k, Some(&open), sampling, &mut self.rng);
+            codes = drawn.iter().zip(&committed).map(|(d, c)| c.unwrap_or(*d)).collect();
+            if pass + 1 == passes {
+                passes_log.push((0..cells.len()).filter(|&i| open[i]).collect());
+                break;
+            }
+            let Sampling::Temperature { temperature, .. } = sampling else { break };
+            // confidence of each open cell's draw, its probability under the softmax
+            let mut conf: Vec<(f32, usize)> = (0..cells.len())
+                .filter(|&i| open[i])
+                .map(|i| (draw_probability(&dist[i * k..(i + 1) * k], drawn[i] as usize, temperature), i))
+                .collect();
+            let n_commit = conf.len().div_ceil(passes - pass);
+            conf.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+            let newly: Vec<usize> = conf.iter().take(n_commit).map(|c| c.1).collect();
+            passes_log.push(newly.clone());
+            for &i in &newly {
+                committed[i] = Some(drawn[i]);
+            }
+            let out = self.decode_codes(&codes, ch, cw)?;
+            for &i in &newly {
+                let (cy, cx) = (i / cw, i % cw);
+                for y in cy * f..(cy + 1) * f {
+                    for x in cx * f..(cx + 1) * f {
+                        let p = y * pw + x;
+                        if mask[p] {
+                            work.colour.data[p] = out.colour.data[p];
+                            work.depth_m.data[p] = out.depth_m.data[p];
+                            mask[p] = false;
+                        }
+                    }
+                }
+            }
+        }
+        let full = self.decode_codes(&codes, ch, cw)?;
+        self.trace = SamplingTrace { codes, passes: passes_log, missing_cells: cells };
         let mut out = crop_frame(&full, w, h);
         if self.options.keep_observed {
             keep_observed(&mut out, frame, missing);
         }
         Ok(out)
     }
+
+    /// Decodes one code per latent cell (row-major `[h, w]`) into a frame.
+    fn decode_codes(&self, codes: &[u32], h: usize, w: usize) -> Result<RgbdFrame, ModelError> {
+        let rows = self.model.quantize.lookup(codes, &self.device);
+        let [_, d] = rows.dims();
+        let z_q = rows.reshape([1, h, w, d]).permute([0, 3, 1, 2]);
+        unpack(self.model.decode(z_q), &self.config.depth)?
+            .pop()
+            .ok_or_else(|| ModelError::Input("empty output".into()))
+    }
+}
+
+/// Probability of code `j` under `softmax(-row / temperature)` (row = squared distances).
+fn draw_probability(row: &[f32], j: usize, temperature: f32) -> f32 {
+    let dmin = row.iter().copied().fold(f32::INFINITY, f32::min);
+    let t = temperature.max(1e-12) as f64;
+    let total: f64 = row.iter().map(|&d| (-((d - dmin) as f64) / t).exp()).sum();
+    ((-((row[j] - dmin) as f64) / t).exp() / total.max(1e-300)) as f32
 }
 
 /// Copies the observed pixels (`!missing`) of `guidance` into `out` (same size).
@@ -218,6 +375,6 @@ impl Refiner for VqRefiner {
     /// result does not depend on what was refined before it (resumed runs equal uninterrupted ones).
     fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, ModelError> {
         self.rng = ChaCha8Rng::seed_from_u64(self.options.seed ^ guidance.seed);
-        self.complete(&guidance.frame, &guidance.missing)
+        self.complete_at(&guidance.frame, &guidance.missing, Some(&guidance.camera.intrinsics))
     }
 }

@@ -84,9 +84,14 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
     (crate::fuse::median(ms), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
-/// The bundled compact model, for timing.
+/// The bundled compact model with `sgam generate`'s default sampling (T = 1 over all codes;
+/// iterative passes for large holes), for timing.
 fn compact_refiner() -> Result<sgam_model::VqRefiner> {
-    Ok(sgam_model::VqRefiner::from_bytes(crate::generate::BUNDLED_MODEL, None, Default::default())?)
+    let options = sgam_model::RefinerOptions {
+        sampling: sgam_model::Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        ..Default::default()
+    };
+    Ok(sgam_model::VqRefiner::from_bytes(crate::generate::BUNDLED_MODEL, None, options)?)
 }
 
 fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Value) {
@@ -124,25 +129,18 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
         args,
         "refine",
         &ms,
-        json!({"preset": "compact", "embed_dim": params.embed_dim, "n_embed": params.n_embed}),
+        json!({"preset": "compact", "embed_dim": params.embed_dim, "n_embed": params.n_embed,
+               "passes": refiner.trace().passes.len(), "missing_fraction": 0.25}),
     );
     Ok(())
 }
 
 fn bench_step(args: &BenchArgs) -> Result<()> {
-    use crate::generator::{GeneratorConfig, WorldGenerator};
+    use crate::generator::WorldGenerator;
     let refiner = compact_refiner()?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
-    let config = GeneratorConfig {
-        tsdf: TsdfConfig::default(),
-        warp: WarpConfig { selection: sgam_map::SourceSelection::NearestCamera, ..WarpConfig::default() },
-        k_sources: 5,
-        source_radius_m: 1.0,
-        weight_threshold: 1.0,
-        no_map: false,
-        seed: 0,
-    };
+    let config = crate::generator::clevr_generator_config(0);
     let keyframes = crate::keyframes::Keyframes::new(dir.path(), 1.0, 96);
     let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
     let (seed_cam, seed_frame) = &seq[0];

@@ -14,6 +14,14 @@ pub enum EvalCommand {
     /// One-step completion quality (PSNR, SSIM, on visible and missing pixels) on held-out
     /// synthetic scenes, with guidance built exactly as generation builds it.
     OneStep(OneStepArgs),
+    /// Grow worlds with a refiner and with the oracle on held-out seeds along the same
+    /// trajectory and compare them: objects, footprints, colour, ground roughness, the paper's
+    /// scene metrics and KID.
+    World(crate::eval_world::WorldArgs),
+    /// The baselines table: the bundled model (argmin and sampled), the null stand-in, the
+    /// no-map and no-refine ablations and the oracle through `eval world` and `eval one-step`,
+    /// as Markdown, plus the overview pictures side by side.
+    Table(crate::eval_table::TableArgs),
 }
 
 /// Arguments of `sgam eval mesh`.
@@ -51,6 +59,15 @@ fn summary(d: &[f32], max: f32) -> serde_json::Value {
 /// Runs `sgam eval`.
 pub fn run(cmd: EvalCommand) -> Result<()> {
     match cmd {
+        EvalCommand::World(a) => {
+            let v = crate::eval_world::evaluate(&a)?;
+            if !a.json {
+                eprint!("{}", crate::eval_world::summary_text(&v));
+            }
+            println!("{v}");
+            Ok(())
+        }
+        EvalCommand::Table(a) => crate::eval_table::run(&a),
         EvalCommand::OneStep(a) => {
             let line = match a.refiner {
                 crate::generate::RefinerKind::Oracle => {

@@ -9,7 +9,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
 use sgam_core::{trajectory, Camera, Intrinsics, Refiner, RgbdFrame, Rigid3, Vec3};
-use sgam_map::{SourceSelection, TsdfConfig, TsdfMap, WarpConfig};
+use sgam_map::{TsdfConfig, TsdfMap};
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
 
 use crate::fuse::{median, save_map, write_mesh};
@@ -116,11 +116,13 @@ pub struct GenerateArgs {
     /// Model weights for --refiner model (default: the bundled compact model).
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Sampling temperature in missing latent cells (0 = argmin everywhere).
-    #[arg(long, default_value_t = 0.0)]
+    /// Sampling temperature in missing latent cells: 1 draws from the generative model's trained
+    /// distribution over codes, lower is more conservative, 0 = argmin everywhere (the
+    /// deterministic completion).
+    #[arg(long, default_value_t = 1.0)]
     pub temperature: f32,
-    /// Codes considered when sampling (top-k nearest).
-    #[arg(long, default_value_t = 8)]
+    /// Codes considered when sampling: the k nearest (0 = all, the calibrated distribution).
+    #[arg(long, default_value_t = 0)]
     pub top_k: usize,
     /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
     /// guidance is kept where it was observed and the model fills only the missing pixels.
@@ -438,8 +440,12 @@ pub fn model_refiner(kind: RefinerKind, args: &GenerateArgs) -> Result<Option<sg
         (_, Some(p)) => Some(p.clone()),
         (RefinerKind::Model | RefinerKind::Auto, None) => None,
     };
-    let sampling = if args.temperature > 0.0 && args.top_k > 1 {
-        sgam_model::Sampling::Temperature { temperature: args.temperature, top_k: args.top_k }
+    if !(args.temperature.is_finite() && args.temperature >= 0.0) {
+        bail!("--temperature {} must be a non-negative number", args.temperature);
+    }
+    let top_k = if args.top_k == 0 { usize::MAX } else { args.top_k };
+    let sampling = if args.temperature > 0.0 && top_k > 1 {
+        sgam_model::Sampling::Temperature { temperature: args.temperature, top_k }
     } else {
         sgam_model::Sampling::Argmin
     };
@@ -478,12 +484,10 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
     tsdf.validate().context("invalid map parameters")?;
     let config = GeneratorConfig {
         tsdf,
-        warp: WarpConfig { selection: SourceSelection::NearestCamera, ..WarpConfig::default() },
         k_sources: args.k_sources.unwrap_or(p.k_sources),
         source_radius_m: args.source_radius.unwrap_or(p.source_radius_m),
-        weight_threshold: 1.0,
         no_map: args.no_map,
-        seed: args.seed,
+        ..crate::generator::clevr_generator_config(args.seed)
     };
     let mut keyframes = Keyframes::new(dir, config.source_radius_m, 96);
     let resumed = resume.is_some();

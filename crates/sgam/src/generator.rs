@@ -5,7 +5,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
-use sgam_map::{warp_colour, SourceView, TsdfConfig, TsdfMap, WarpConfig};
+use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
 use crate::keyframes::{quantise_colour, Keyframes};
 
@@ -27,6 +27,54 @@ pub struct GeneratorConfig {
     pub no_map: bool,
     /// Run seed; the refiner's per-step seed is derived from it and the step index.
     pub seed: u64,
+}
+
+/// The loop's parameters for the CLEVR-Infinite world (the authors' values, DESIGN.md §4 and
+/// §6): 5 cm voxels, truncation 10 voxels, depth 0.05-20 m, colour from the nearest source
+/// camera that passes the geometry check, the nearest 5 sources within 1 m, weight threshold 1.
+/// Generation (`sgam generate`, whose options override fields of it) and the generative
+/// stage-2 training pairs ([`crate::codepairs`]) both start from this one value.
+pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
+    GeneratorConfig {
+        tsdf: TsdfConfig {
+            voxel_size_m: 0.05,
+            trunc_voxels: 10.0,
+            depth_min_m: 0.05,
+            depth_max_m: 20.0,
+            weight_cap: None,
+        },
+        warp: WarpConfig { selection: SourceSelection::NearestCamera, ..WarpConfig::default() },
+        k_sources: 5,
+        source_radius_m: 1.0,
+        weight_threshold: 1.0,
+        no_map: false,
+        seed,
+    }
+}
+
+/// The guidance at `camera`: the map's mesh rasterized to depth, colour inverse-warped from
+/// `sources` with the geometry check, missing where neither gives a value. The one function
+/// that generation ([`WorldGenerator::step`]), the training pairs and the evaluation call, so
+/// a model trains and is judged on exactly the guidance it will complete. Returns the guidance
+/// and the rasterization's wall time (ms).
+pub fn render_guidance(
+    map: &mut TsdfMap,
+    camera: &Camera,
+    sources: &[SourceView<'_>],
+    warp: &WarpConfig,
+    seed: u64,
+) -> (Guidance, f64) {
+    let t = Instant::now();
+    let depth_m = map.render_depth(camera);
+    let render_ms = t.elapsed().as_secs_f64() * 1e3;
+    let warped = warp_colour(camera, &depth_m, sources, warp);
+    let guidance = Guidance {
+        camera: *camera,
+        frame: RgbdFrame { colour: warped.colour, depth_m },
+        missing: warped.missing,
+        seed,
+    };
+    (guidance, render_ms)
 }
 
 /// Wall time of each stage of one step, milliseconds.
@@ -109,20 +157,13 @@ impl<R: Refiner> WorldGenerator<R> {
         // choose sources: the k nearest generated frames within the radius
         let sources = self.choose_sources(camera)?;
         timings.sources_ms = t.lap();
-        // guidance geometry: rasterize the map's mesh at the target camera
-        let depth_m = self.map.render_depth(camera);
-        timings.render_ms = t.lap();
-        // guidance colour: inverse-warp from the sources with a geometry check
+        // guidance: the map rasterized at the target camera, colour inverse-warped from the sources
         let views: Vec<SourceView<'_>> = sources.iter().map(|(c, f)| SourceView { camera: c, frame: f }).collect();
-        let warped = warp_colour(camera, &depth_m, &views, &self.config.warp);
         let step_index = self.keyframes.len() as u64;
-        let guidance = Guidance {
-            camera: *camera,
-            frame: RgbdFrame { colour: warped.colour, depth_m },
-            missing: warped.missing,
-            seed: self.config.seed ^ step_index.wrapping_mul(0x9E37_79B9_7F4A_7C15),
-        };
-        timings.warp_ms = t.lap();
+        let seed = self.config.seed ^ step_index.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let (guidance, render_ms) = render_guidance(&mut self.map, camera, &views, &self.config.warp, seed);
+        timings.render_ms = render_ms;
+        timings.warp_ms = t.lap() - render_ms;
         timings.missing_fraction = guidance.missing_fraction();
         // complete the incomplete RGB-D image in one shot
         let mut frame = self.refiner.refine(&guidance).map_err(anyhow::Error::new).context("refiner failed")?;

@@ -4,8 +4,11 @@
 //! crates (`sgam-map`, `sgam-synth`, `sgam-model`, `sgam-metrics`, `sgam-io`).
 
 mod bench;
+mod codepairs;
 mod convert;
 mod eval;
+mod eval_table;
+mod eval_world;
 mod fuse;
 mod generate;
 mod generator;
@@ -17,6 +20,7 @@ mod progress;
 mod refiners;
 mod synth;
 mod train;
+mod train_sampler;
 
 use clap::{Parser, Subcommand};
 

@@ -18,7 +18,7 @@ use rand::seq::SliceRandom;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Camera, Intrinsics, RgbdFrame, Vec3};
-use sgam_map::{warp_colour, SourceView, TsdfConfig, TsdfMap, WarpConfig};
+use sgam_map::{SourceView, TsdfMap};
 use sgam_model::{PairSource, Stage, TrainPair};
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
 
@@ -121,7 +121,8 @@ impl SynthPairs {
             }
         }
         offsets.sort_by_key(|(di, dj)| di * di + dj * dj);
-        let mut map = TsdfMap::new(TsdfConfig::default());
+        let config = crate::generator::clevr_generator_config(0);
+        let mut map = TsdfMap::new(config.tsdf);
         let views: Vec<(Camera, RgbdFrame)> = offsets
             .iter()
             .map(|(di, dj)| {
@@ -134,19 +135,18 @@ impl SynthPairs {
         for (cam, f) in &views {
             map.integrate(f, cam);
         }
-        map.update_mesh(1.0);
-        let depth_m = map.render_depth(&crop_cam);
+        map.update_mesh(config.weight_threshold);
         let sources: Vec<SourceView<'_>> =
             views.iter().take(self.k_sources).map(|(c, f)| SourceView { camera: c, frame: f }).collect();
-        let warped = warp_colour(&crop_cam, &depth_m, &sources, &WarpConfig::default());
-        let mut input = RgbdFrame { colour: warped.colour, depth_m };
-        for (i, m) in warped.missing.iter().enumerate() {
+        let (guidance, _) = crate::generator::render_guidance(&mut map, &crop_cam, &sources, &config.warp, 0);
+        let mut input = guidance.frame;
+        for (i, m) in guidance.missing.iter().enumerate() {
             if *m {
                 input.depth_m.data[i] = 0.0;
                 input.colour.data[i] = [0.0; 3];
             }
         }
-        (crop_cam, TrainPair { input, missing: warped.missing, target: truth })
+        (crop_cam, TrainPair { input, missing: guidance.missing, target: truth })
     }
 }
 

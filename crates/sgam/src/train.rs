@@ -34,6 +34,10 @@ pub enum TrainCommand {
     /// Stage 2: fine-tune the encoder and mask conv on incomplete -> complete pairs built by the
     /// generator's own render + warp path; codebook, quant convs and decoder frozen.
     Stage2(TrainArgs),
+    /// Generative stage 2: train the encoder to predict a distribution over codebook indices
+    /// (cross-entropy against the codes the frozen encoder gives the clean target), on pairs
+    /// recorded from the generator itself running with the oracle on training scenes.
+    Sampler(SamplerArgs),
     /// Write a run's weights as a shippable model file (f16 by default, config embedded).
     #[command(
         after_help = "Example (the bundled model):\n  sgam train export runs/s2/model.safetensors models/compact.safetensors"
@@ -64,6 +68,72 @@ fn export(a: &ExportArgs) -> Result<()> {
     let bytes = std::fs::metadata(&a.output).map(|m| m.len()).unwrap_or(0);
     eprintln!("{} -> {} ({} preset, {:.1} MB)", a.input.display(), a.output.display(), config.name, bytes as f64 / 1e6);
     Ok(())
+}
+
+/// Arguments of `sgam train sampler`.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  sgam train sampler --run runs/sampler --steps 12000          # from the bundled model\n  sgam train sampler --run runs/sampler --steps 16000 --lr-decay-from 12000   # resume, decayed tail\n  sgam train export runs/sampler/ckpt/model.safetensors models/compact.safetensors\n\nThe training pairs are recorded from the generator (oracle refiner, training scenes) when the\nrun starts and kept in memory; the frozen target encoder is copied to RUN/target.safetensors so\na resumed run computes the same targets. RUN/log.jsonl has one line per step, RUN/val.jsonl the\nheld-out cross-entropy and accuracy."
+)]
+pub struct SamplerArgs {
+    /// Run folder (checkpoint in RUN/ckpt, logs).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Model to start from; its codebook and decoder are kept and its encoder gives the targets
+    /// (default: the bundled model).
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// Do not add the two ray (pixel-direction) input channels.
+    #[arg(long)]
+    pub no_rays: bool,
+    /// Use the paper's distance logits `-||z - e_k||^2 / tau` instead of a learned code head
+    /// (a 1x1 conv to one logit per code, initialised equal to them; it can express
+    /// multimodal distributions, the distances cannot).
+    #[arg(long)]
+    pub distance_logits: bool,
+    /// Total optimisation steps (a resumed run continues up to this).
+    #[arg(long, default_value_t = 12_000)]
+    pub steps: u64,
+    /// Pairs per step.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Crop side in pixels (a multiple of the model's downsampling factor).
+    #[arg(long, default_value_t = 128)]
+    pub crop: u32,
+    /// Training pairs recorded at the start (kept in memory, ~0.3 MB each at crop 128).
+    #[arg(long, default_value_t = 6000)]
+    pub pairs: usize,
+    /// Held-out pairs (from other training scenes) for the validation line.
+    #[arg(long, default_value_t = 256)]
+    pub val_pairs: usize,
+    /// Steps per recorded generator run.
+    #[arg(long, default_value_t = 40)]
+    pub steps_per_run: usize,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 3e-4)]
+    pub lr: f64,
+    /// Half-cosine decay of the learning rate from this step to --steps.
+    #[arg(long, value_name = "STEP")]
+    pub lr_decay_from: Option<u64>,
+    /// Loss weight of observed latent cells relative to missing ones.
+    #[arg(long, default_value_t = 0.2)]
+    pub observed_weight: f32,
+    /// Soft targets: credit spread over codes within this many codebook spacings of the
+    /// target code (codes that decode alike); 0 = one-hot.
+    #[arg(long, default_value_t = 1.0)]
+    pub target_smoothing: f32,
+    /// Checkpoint every N steps.
+    #[arg(long, default_value_t = 250)]
+    pub ckpt_every: u64,
+    /// Validate every N steps.
+    #[arg(long, default_value_t = 500)]
+    pub val_every: u64,
+    /// Training scenes: seeds 0..N (held-out evaluation seeds start at 1000000).
+    #[arg(long, default_value_t = 100_000)]
+    pub scenes: u64,
+    /// Seed of the pair recording and the batch order.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
 }
 
 /// Options shared by both stages.
@@ -177,6 +247,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         TrainCommand::Stage1(a) => (Stage::One, a),
         TrainCommand::Stage2(a) => (Stage::Two, a),
         TrainCommand::Export(a) => return export(&a),
+        TrainCommand::Sampler(a) => return crate::train_sampler::run(&a),
     };
     if args.scenes == 0 || args.scenes >= HELD_OUT_SEED_BASE {
         bail!("--scenes must be in 1..{HELD_OUT_SEED_BASE}");

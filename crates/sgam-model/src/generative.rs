@@ -1,0 +1,638 @@
+//! The generative stage 2: the encoder learns a *distribution* over codebook indices per latent
+//! cell, so that sampling draws plausible completions instead of averaging them.
+//!
+//! A stage-2 encoder trained with L1 through the frozen decoder predicts the mean of everything
+//! that could fill a missing cell: grey ground, or the neighbouring colour continued (DESIGN.md
+//! §5). Here the target is the code the frozen stage-1 encoder assigns to the clean target
+//! ([`target_codes`]), and the loss is the cross-entropy of that index under
+//!
+//! `p(k | guidance) = softmax_k(-||z - e_k||^2 / tau)`
+//!
+//! with `z` the encoder's output in the cell, `e_k` the frozen codebook and `tau` a learned
+//! temperature: the paper's own sampling formula, now trained to be calibrated, so sampling at
+//! `T = 1` (`softmax(-d / (T tau))`) draws from the model's estimate of `p(code | context)` and
+//! `T -> 0` is the usual argmin quantizer (the decoder is unchanged). Missing cells weigh
+//! [`CodeTrainConfig::observed_weight`]^-1 times more than observed ones: only they are sampled.
+//!
+//! Only the mask fusion `conv_in` and the `encoder` train; `quant_conv`, the codebook,
+//! `post_quant_conv` and the decoder stay bit-identical, so the decoder still turns codes into
+//! the stage-1 autoencoder's pixels. Training needs no decoder pass (it runs at encoder speed).
+//!
+//! Checkpoints ([`CodeTrainer::save`]) are one folder, `RUN/ckpt`, replaced as a whole: written
+//! to `RUN/ckpt.new`, then swapped in by renames, so a kill at any moment leaves either the old
+//! or the new checkpoint, never a mix.
+
+use std::path::Path;
+
+use burn::module::{Module, Param};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::activation::{log_softmax, softmax};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use sgam_core::{Intrinsics, RgbdFrame};
+
+use crate::config::ModelConfig;
+use crate::model::VqModel;
+use crate::packing::{missing_cells, pack_input};
+use crate::params::{
+    from_safetensors_bytes, load_named, named_tensors, param_id_for_path, save_safetensors, write_atomic, NamedTensor,
+    WeightPrecision,
+};
+use crate::quantize::to_host;
+use crate::ModelError;
+
+/// One training example of the generative stage 2.
+#[derive(Debug, Clone)]
+pub struct CodePair {
+    /// Incomplete guidance (what the generator renders + warps).
+    pub input: RgbdFrame,
+    /// Row-major, `true` = missing pixel of `input`.
+    pub missing: Vec<bool>,
+    /// Intrinsics of `input` (a crop carries its shifted principal point).
+    pub intrinsics: Intrinsics,
+    /// Target code per latent cell, row-major `[H / f, W / f]`: the frozen encoder's argmin on
+    /// the clean target.
+    pub codes: Vec<u32>,
+}
+
+/// Argmin code index per latent cell of each clean frame under `model` (nothing missing):
+/// the cross-entropy targets. One `Vec` per frame, row-major `[H / f, W / f]`.
+pub fn target_codes(
+    model: &VqModel,
+    config: &ModelConfig,
+    frames: &[&RgbdFrame],
+    intrinsics: &[Intrinsics],
+    device: &Device,
+) -> Result<Vec<Vec<u32>>, ModelError> {
+    let x = pack_input(frames, &vec![None; frames.len()], intrinsics, config, device)?;
+    let z = model.encode(x);
+    let [b, d, h, w] = z.dims();
+    let rows = z.permute([0, 2, 3, 1]).reshape([b * h * w, d]);
+    let dist = to_host(squared_distances(rows, model.quantize.embedding.weight.val().detach()))?;
+    let k = config.n_embed;
+    let idx: Vec<u32> = dist
+        .chunks_exact(k)
+        .map(|row| {
+            row.iter().enumerate().fold((0usize, f32::INFINITY), |a, (j, &v)| if v < a.1 { (j, v) } else { a }).0 as u32
+        })
+        .collect();
+    Ok(idx.chunks(h * w).map(<[u32]>::to_vec).collect())
+}
+
+/// `||z_i - e_k||^2` for rows `z` `[N, D]` and codebook `e` `[K, D]`: `[N, K]`.
+pub fn squared_distances(z: Tensor<2>, e: Tensor<2>) -> Tensor<2> {
+    let [k, _] = e.dims();
+    let zz = z.clone().square().sum_dim(1);
+    let ee = e.clone().square().sum_dim(1).reshape([1, k]);
+    zz + ee - z.matmul(e.transpose()).mul_scalar(2.0)
+}
+
+/// The learned code temperature, stored as `log tau`.
+#[derive(Module, Debug)]
+pub struct CodeTemperature {
+    /// `ln tau`, shape `[1]`.
+    pub log_tau: Param<Tensor<1>>,
+}
+
+impl CodeTemperature {
+    fn new(tau: f32, device: &Device) -> Self {
+        Self::from_log(tau.ln(), device)
+    }
+
+    fn from_log(log_tau: f32, device: &Device) -> Self {
+        let mut log_tau = Param::from_tensor(Tensor::from_data(TensorData::new(vec![log_tau], [1]), device));
+        // a fixed id, so the optimizer state saved with a checkpoint finds it again
+        log_tau.id = param_id_for_path("code_temperature.log_tau");
+        Self { log_tau }
+    }
+
+    fn log(&self) -> Result<f32, ModelError> {
+        Ok(to_host(self.log_tau.val().detach())?.first().copied().unwrap_or(f32::NAN))
+    }
+
+    fn tau(&self) -> Result<f32, ModelError> {
+        Ok(self.log()?.exp())
+    }
+}
+
+/// Hyper-parameters of the generative stage 2 (stored in every checkpoint).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CodeTrainConfig {
+    /// Total optimisation steps.
+    pub steps: u64,
+    /// Pairs per step.
+    pub batch: usize,
+    /// Adam learning rate (encoder and `log tau`).
+    pub lr: f64,
+    /// Half-cosine decay from `lr` to 5 % of it between this step and `steps` (None: constant).
+    pub lr_decay_from: Option<u64>,
+    /// Loss weight of observed cells relative to missing ones (their codes matter for the
+    /// decoder's context but are rarely in doubt).
+    pub observed_weight: f32,
+    /// A latent cell counts as missing when more than this fraction of its pixels is missing
+    /// (the refiner's rule).
+    pub missing_cell_threshold: f32,
+    /// Checkpoint every N steps.
+    pub ckpt_every: u64,
+    /// RNG seed (batch order).
+    pub seed: u64,
+    /// Learning rate of `log tau` relative to `lr`: Adam moves a parameter by about its rate
+    /// per step, and `log tau` must travel several units early on (the first run, at 1x, took
+    /// 300 steps to move it by 0.08 while the missing cells' cross-entropy stayed near 30 nats).
+    #[serde(default = "default_tau_lr_scale")]
+    pub tau_lr_scale: f64,
+    /// Soft targets: the target distribution puts `exp(-||e_k - e_t||^2 / (s * spacing))` on
+    /// code `k` around the target code `t` (`spacing` = [`codebook_spacing`]), so codes that
+    /// decode alike share the credit; 0 = one-hot targets. The codebook is dense: on the
+    /// generator's guidance of *observed* cells the target's exact code is the argmin only
+    /// about one time in five (the first run), and with one-hot targets the missing cells'
+    /// cross-entropy stayed above that of a uniform guess (7.5 nats for 1024 codes).
+    #[serde(default = "default_target_smoothing")]
+    pub target_smoothing: f32,
+}
+
+fn default_target_smoothing() -> f32 {
+    1.0
+}
+
+fn default_tau_lr_scale() -> f64 {
+    30.0
+}
+
+impl Default for CodeTrainConfig {
+    fn default() -> Self {
+        Self {
+            steps: 20_000,
+            batch: 8,
+            lr: 3e-4,
+            lr_decay_from: None,
+            observed_weight: 0.2,
+            missing_cell_threshold: 0.5,
+            ckpt_every: 250,
+            seed: 0,
+            tau_lr_scale: default_tau_lr_scale(),
+            target_smoothing: default_target_smoothing(),
+        }
+    }
+}
+
+impl CodeTrainConfig {
+    /// Learning rate after `step` steps.
+    pub fn lr_at(&self, step: u64) -> f64 {
+        match self.lr_decay_from {
+            Some(from) if step >= from && self.steps > from => {
+                let t = ((step - from) as f64 / (self.steps - from) as f64).min(1.0);
+                self.lr * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()))
+            }
+            _ => self.lr,
+        }
+    }
+}
+
+/// Losses and accuracies of one step (or of an evaluation pass).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CodeReport {
+    /// Step number (1-based) of a training step; 0 for evaluation.
+    pub step: u64,
+    /// Mean cross-entropy (nats) of the exact target code over missing cells (the loss itself
+    /// uses the soft targets of [`CodeTrainConfig::target_smoothing`]).
+    pub ce_missing: f32,
+    /// Mean cross-entropy of the exact target code over observed cells.
+    pub ce_observed: f32,
+    /// Share of missing cells whose most likely code is the target.
+    pub acc_missing: f32,
+    /// Share of observed cells whose most likely code is the target.
+    pub acc_observed: f32,
+    /// Missing cells in the batch.
+    pub missing_cells: usize,
+    /// The code temperature after the step.
+    pub tau: f32,
+    /// Weighted loss that was minimised.
+    pub loss: f32,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct CodeState {
+    version: u32,
+    model_config: ModelConfig,
+    train_config: CodeTrainConfig,
+    step: u64,
+    log_tau: f32,
+    rng_seed: [u8; 32],
+    rng_stream: u64,
+    rng_word_pos: u128,
+}
+
+const STATE_VERSION: u32 = 1;
+
+/// A generative stage-2 training session.
+pub struct CodeTrainer {
+    /// Architecture (with `code_tau` kept up to date in saved weights).
+    pub model_config: ModelConfig,
+    /// Hyper-parameters.
+    pub train_config: CodeTrainConfig,
+    /// The model (autodiff; only `conv_in` and `encoder` require gradients).
+    pub model: VqModel,
+    temperature: CodeTemperature,
+    optim: ModuleOptimizer,
+    optim_tau: ModuleOptimizer,
+    /// Completed steps.
+    pub step: u64,
+    /// Batch-order RNG.
+    pub rng: ChaCha8Rng,
+    spacing: f32,
+    device: Device,
+}
+
+impl std::fmt::Debug for CodeTrainer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CodeTrainer").field("step", &self.step).finish_non_exhaustive()
+    }
+}
+
+fn adam() -> ModuleOptimizer {
+    AdamConfig::new().with_beta_1(0.9).with_beta_2(0.99).with_epsilon(1e-8).init()
+}
+
+fn freeze(model: VqModel) -> VqModel {
+    let mut m = model;
+    m.quant_conv = m.quant_conv.no_grad();
+    m.quantize = m.quantize.no_grad();
+    m.post_quant_conv = m.post_quant_conv.no_grad();
+    m.decoder = m.decoder.no_grad();
+    m
+}
+
+/// Median over codes of the squared distance to the nearest other code: the scale at which
+/// `softmax(-d / tau)` starts to tell neighbouring codes apart (the initial `tau`).
+pub fn codebook_spacing(model: &VqModel) -> Result<f32, ModelError> {
+    let e = model.quantize.embedding.weight.val().detach();
+    let [k, _] = e.dims();
+    let d = to_host(squared_distances(e.clone(), e))?;
+    let mut nn: Vec<f32> = (0..k)
+        .map(|i| (0..k).filter(|&j| j != i).map(|j| d[i * k + j]).fold(f32::INFINITY, f32::min))
+        .filter(|v| v.is_finite())
+        .collect();
+    if nn.is_empty() {
+        return Err(ModelError::Weights("the codebook has fewer than two codes".into()));
+    }
+    let mid = nn.len() / 2;
+    nn.select_nth_unstable_by(mid, f32::total_cmp);
+    Ok(nn[mid].max(1e-6))
+}
+
+/// Widens a 5-channel mask-fusion `conv_in.weight` `[4, 5, 1, 1]` to `channels` inputs with zero
+/// weights on the new (ray) channels, so a model trained without them starts out unchanged.
+pub fn widen_conv_in(tensors: &mut std::collections::BTreeMap<String, NamedTensor>, channels: usize) {
+    let Some(t) = tensors.get_mut("conv_in.weight") else { return };
+    let (out, inp) = (t.shape[0], t.shape.get(1).copied().unwrap_or(0));
+    if inp >= channels || out == 0 {
+        return;
+    }
+    let mut values = vec![0.0f32; out * channels];
+    for o in 0..out {
+        values[o * channels..o * channels + inp].copy_from_slice(&t.values[o * inp..(o + 1) * inp]);
+    }
+    *t = NamedTensor { shape: vec![out, channels, 1, 1], values };
+}
+
+/// Initial temperature of a code head, in codebook spacings (see [`CodeTrainer::new`]).
+pub const HEAD_INIT_SPACINGS: f32 = 16.0;
+
+/// Weights of a code head equal to the distance logits `-||quant_conv(h) - e_k||^2 / tau` up to
+/// a per-cell constant (which softmax ignores): with `quant_conv(h) = Q h + q`, the logit of
+/// code `k` is `(2 e_k . (Q h + q) - ||e_k||^2) / tau`, i.e. weight `2 e_k Q / tau` and bias
+/// `(2 e_k . q - ||e_k||^2) / tau`. Adds `code_head.weight` `[K, z, 1, 1]` and
+/// `code_head.bias` `[K]` to `tensors`.
+pub fn head_from_codebook(
+    tensors: &mut std::collections::BTreeMap<String, NamedTensor>,
+    tau: f32,
+) -> Result<(), ModelError> {
+    let get = |name: &str| {
+        tensors.get(name).cloned().ok_or_else(|| ModelError::Weights(format!("no {name} to build the code head from")))
+    };
+    let (e, q, qb) = (get("quantize.embedding.weight")?, get("quant_conv.weight")?, get("quant_conv.bias")?);
+    let (k, d) = (e.shape[0], e.shape[1]);
+    let z = q.shape.get(1).copied().unwrap_or(0);
+    if q.shape[0] != d || qb.values.len() != d || q.values.len() != d * z {
+        return Err(ModelError::Weights(format!("quant_conv {:?} does not match the codebook {:?}", q.shape, e.shape)));
+    }
+    let mut w = vec![0.0f32; k * z];
+    let mut b = vec![0.0f32; k];
+    for c in 0..k {
+        let ec = &e.values[c * d..(c + 1) * d];
+        for j in 0..z {
+            w[c * z + j] = 2.0 * (0..d).map(|i| ec[i] * q.values[i * z + j]).sum::<f32>() / tau;
+        }
+        let dot: f32 = (0..d).map(|i| ec[i] * qb.values[i]).sum();
+        let norm: f32 = ec.iter().map(|x| x * x).sum();
+        b[c] = (2.0 * dot - norm) / tau;
+    }
+    tensors.insert("code_head.weight".into(), NamedTensor { shape: vec![k, z, 1, 1], values: w });
+    tensors.insert("code_head.bias".into(), NamedTensor { shape: vec![k], values: b });
+    Ok(())
+}
+
+impl CodeTrainer {
+    /// A new session warm-started from `init` (weights of a trained model, typically the
+    /// stage-1 / stage-2 model whose codebook and decoder are kept). `model_config` may add
+    /// ray channels to `init`'s architecture; everything else must match.
+    pub fn new(
+        model_config: &ModelConfig,
+        init: &std::collections::BTreeMap<String, NamedTensor>,
+        train_config: &CodeTrainConfig,
+    ) -> Result<Self, ModelError> {
+        let device = crate::default_device();
+        let mut tensors = init.clone();
+        widen_conv_in(&mut tensors, model_config.input_channels());
+        if model_config.code_head && !tensors.contains_key("code_head.weight") {
+            // start from the distance logits, softened: at the codebook's own spacing they are
+            // so sharp that the missing cells' cross-entropy starts above 40 nats, and the
+            // distance-logit run's tau grew by 15x in its first 400 steps
+            let base = load_named(
+                VqModel::new(&ModelConfig { code_head: false, ..model_config.clone() }, 0, &device)?,
+                &tensors,
+                false,
+                true,
+            )?;
+            head_from_codebook(&mut tensors, HEAD_INIT_SPACINGS * codebook_spacing(&base)?)?;
+        }
+        let model = load_named(VqModel::new(model_config, train_config.seed, &device)?, &tensors, false, false)?;
+        let spacing = codebook_spacing(&model)?;
+        let tau = model_config.code_tau.unwrap_or(spacing);
+        let model = freeze(model).train();
+        Ok(Self {
+            model_config: model_config.clone(),
+            train_config: train_config.clone(),
+            model,
+            temperature: CodeTemperature::new(tau, &device).train(),
+            optim: adam(),
+            optim_tau: adam(),
+            step: 0,
+            rng: ChaCha8Rng::seed_from_u64(train_config.seed),
+            spacing,
+            device,
+        })
+    }
+
+    /// The current code temperature `tau`.
+    pub fn tau(&self) -> Result<f32, ModelError> {
+        self.temperature.tau()
+    }
+
+    /// The model config with the current `tau` as `code_tau` (what saved weights carry; 1 for
+    /// a model with a code head, whose logits carry their own scale).
+    pub fn exported_config(&self) -> Result<ModelConfig, ModelError> {
+        let tau = if self.model_config.code_head { 1.0 } else { self.tau()? };
+        Ok(ModelConfig { code_tau: Some(tau), ..self.model_config.clone() })
+    }
+
+    fn batch_tensors(
+        &self,
+        batch: &[CodePair],
+        device: &Device,
+    ) -> Result<(Tensor<4>, Vec<u32>, Vec<bool>), ModelError> {
+        let f = self.model_config.downsample_factor();
+        let inputs: Vec<&RgbdFrame> = batch.iter().map(|p| &p.input).collect();
+        let masks: Vec<Option<&[bool]>> = batch.iter().map(|p| Some(p.missing.as_slice())).collect();
+        let intr: Vec<Intrinsics> = batch.iter().map(|p| p.intrinsics).collect();
+        let x = pack_input(&inputs, &masks, &intr, &self.model_config, device)?;
+        let mut codes = Vec::new();
+        let mut miss = Vec::new();
+        for p in batch {
+            let (w, h) = (p.input.width() as usize, p.input.height() as usize);
+            if p.codes.len() != (w / f) * (h / f) || w % f != 0 || h % f != 0 {
+                return Err(ModelError::Input(format!(
+                    "a {w}x{h} pair needs {} target codes (a multiple of {f} pixels), has {}",
+                    (w / f) * (h / f),
+                    p.codes.len()
+                )));
+            }
+            if let Some(&bad) = p.codes.iter().find(|&&c| c as usize >= self.model_config.n_embed) {
+                return Err(ModelError::Input(format!(
+                    "target code {bad} >= codebook size {}",
+                    self.model_config.n_embed
+                )));
+            }
+            codes.extend_from_slice(&p.codes);
+            miss.extend(missing_cells(&p.missing, w, h, f, self.train_config.missing_cell_threshold));
+        }
+        Ok((x, codes, miss))
+    }
+
+    /// Per-cell log-probabilities `[N, K]` of the codes and the loss weights, on `device`.
+    fn forward(&self, model: &VqModel, x: Tensor<4>, log_tau: Tensor<1>) -> Tensor<2> {
+        if let Some(logits) = model.code_logits(x.clone()) {
+            let [b, k, h, w] = logits.dims();
+            return log_softmax(logits.permute([0, 2, 3, 1]).reshape([b * h * w, k]), 1);
+        }
+        let z = model.encode(x);
+        let [b, d, h, w] = z.dims();
+        let rows = z.permute([0, 2, 3, 1]).reshape([b * h * w, d]);
+        let e = model.quantize.embedding.weight.val().detach();
+        let inv_tau = log_tau.neg().exp().reshape([1, 1]);
+        log_softmax(squared_distances(rows, e).neg() * inv_tau, 1)
+    }
+
+    /// Per-cell `sum_k q_k log p_k` `[N, 1]` for the (soft) targets `q` around `codes`.
+    fn target_log_likelihood(&self, logp: Tensor<2>, codes: &[u32], dev: &Device) -> Tensor<2> {
+        let n = codes.len();
+        let idx: Vec<i64> = codes.iter().map(|&c| c as i64).collect();
+        if self.train_config.target_smoothing <= 0.0 {
+            let idx = Tensor::<2, Int>::from_data(TensorData::new(idx, [n, 1]), dev);
+            return logp.gather(1, idx);
+        }
+        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [n]), dev);
+        let e = self.model.quantize.embedding.weight.val().detach();
+        let rows = e.clone().select(0, idx);
+        let scale = 1.0 / (self.train_config.target_smoothing * self.spacing);
+        let q = softmax(squared_distances(rows, e).neg().mul_scalar(scale), 1);
+        (q * logp).sum_dim(1)
+    }
+
+    fn report(&self, logp: &[f32], codes: &[u32], miss: &[bool]) -> CodeReport {
+        let k = self.model_config.n_embed;
+        let mut r = CodeReport::default();
+        let (mut nm, mut no) = (0usize, 0usize);
+        for (i, row) in logp.chunks_exact(k).enumerate() {
+            let t = codes[i] as usize;
+            let best = row
+                .iter()
+                .enumerate()
+                .fold((0usize, f32::NEG_INFINITY), |a, (j, &v)| if v > a.1 { (j, v) } else { a })
+                .0;
+            if miss[i] {
+                nm += 1;
+                r.ce_missing -= row[t];
+                r.acc_missing += (best == t) as u8 as f32;
+            } else {
+                no += 1;
+                r.ce_observed -= row[t];
+                r.acc_observed += (best == t) as u8 as f32;
+            }
+        }
+        let norm = |v: &mut f32, n: usize| *v = if n > 0 { *v / n as f32 } else { f32::NAN };
+        norm(&mut r.ce_missing, nm);
+        norm(&mut r.acc_missing, nm);
+        norm(&mut r.ce_observed, no);
+        norm(&mut r.acc_observed, no);
+        r.missing_cells = nm;
+        r
+    }
+
+    /// One optimisation step on `batch` (all pairs the same size).
+    pub fn step_on(&mut self, batch: &[CodePair]) -> Result<CodeReport, ModelError> {
+        if batch.is_empty() {
+            return Err(ModelError::Input("empty batch".into()));
+        }
+        let dev = self.device.clone().autodiff();
+        let (x, codes, miss) = self.batch_tensors(batch, &dev)?;
+        let n = codes.len();
+        let logp = self.forward(&self.model, x, self.temperature.log_tau.val());
+        let (nm, no) = (miss.iter().filter(|m| **m).count(), miss.iter().filter(|m| !**m).count());
+        // per-cell weights: missing cells average to 1, observed cells to observed_weight
+        let w: Vec<f32> = miss
+            .iter()
+            .map(|&m| if m { 1.0 / nm.max(1) as f32 } else { self.train_config.observed_weight / no.max(1) as f32 })
+            .collect();
+        let w = Tensor::<2>::from_data(TensorData::new(w, [n, 1]), &dev);
+        let loss = (self.target_log_likelihood(logp.clone(), &codes, &dev) * w).sum().neg();
+        let host = to_host(logp.detach())?;
+        let loss_value = to_host(loss.clone().detach())?.first().copied().unwrap_or(f32::NAN);
+        if !loss_value.is_finite() {
+            return Err(ModelError::Input(format!("the loss became {loss_value} at step {}", self.step + 1)));
+        }
+        let mut grads = loss.backward();
+        let lr = self.train_config.lr_at(self.step);
+        let g_model = GradientsParams::from_module(&mut grads, &self.model);
+        let g_tau = GradientsParams::from_module(&mut grads, &self.temperature);
+        self.model = self.optim.step(lr, self.model.clone(), g_model);
+        self.temperature = self.optim_tau.step(lr * self.train_config.tau_lr_scale, self.temperature.clone(), g_tau);
+        self.step += 1;
+        let mut r = self.report(&host, &codes, &miss);
+        r.step = self.step;
+        r.loss = loss_value;
+        r.tau = self.tau()?;
+        Ok(r)
+    }
+
+    /// Cross-entropy and accuracy on held-out pairs (inference mode, no update).
+    pub fn evaluate(&self, pairs: &[CodePair], batch: usize) -> Result<CodeReport, ModelError> {
+        let model = self.model.valid();
+        let log_tau = self.temperature.valid().log_tau.val();
+        let (mut logp, mut codes, mut miss) = (Vec::new(), Vec::new(), Vec::new());
+        for chunk in pairs.chunks(batch.max(1)) {
+            let (x, c, m) = self.batch_tensors(chunk, &self.device)?;
+            logp.extend(to_host(self.forward(&model, x, log_tau.clone()))?);
+            codes.extend(c);
+            miss.extend(m);
+        }
+        let mut r = self.report(&logp, &codes, &miss);
+        r.tau = self.tau()?;
+        Ok(r)
+    }
+
+    /// Writes the checkpoint folder `run_dir/ckpt` atomically (see the module docs), with
+    /// `model.safetensors` carrying the current `tau` in its embedded config.
+    pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
+        let io = |what: &str, p: &Path, e: std::io::Error| ModelError::Io(format!("{what} {}: {e}", p.display()));
+        let (new, cur, old) = (run_dir.join("ckpt.new"), run_dir.join("ckpt"), run_dir.join("ckpt.old"));
+        if new.exists() {
+            std::fs::remove_dir_all(&new).map_err(|e| io("removing", &new, e))?;
+        }
+        std::fs::create_dir_all(&new).map_err(|e| io("creating", &new, e))?;
+        let config = self.exported_config()?;
+        let meta = crate::refiner::weight_metadata(&config)?;
+        save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
+        let bytes = self.optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
+        write_atomic(&new.join("optim.bpk"), &bytes)?;
+        let bytes = self.optim_tau.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
+        write_atomic(&new.join("optim_tau.bpk"), &bytes)?;
+        let state = CodeState {
+            version: STATE_VERSION,
+            model_config: self.model_config.clone(),
+            train_config: self.train_config.clone(),
+            step: self.step,
+            log_tau: self.temperature.log()?,
+            rng_seed: self.rng.get_seed(),
+            rng_stream: self.rng.get_stream(),
+            rng_word_pos: self.rng.get_word_pos(),
+        };
+        let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::Checkpoint(format!("state: {e}")))?;
+        write_atomic(&new.join("state.json"), &json)?;
+        if cur.exists() {
+            if old.exists() {
+                std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
+            }
+            std::fs::rename(&cur, &old).map_err(|e| io("renaming", &cur, e))?;
+        }
+        std::fs::rename(&new, &cur).map_err(|e| io("renaming", &new, e))?;
+        if old.exists() {
+            std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
+        }
+        Ok(())
+    }
+
+    /// The checkpoint folder to resume from: `run_dir/ckpt`, or `ckpt.old` when a save was
+    /// interrupted between its two renames. `None` when the run has no checkpoint.
+    pub fn checkpoint_dir(run_dir: &Path) -> Option<std::path::PathBuf> {
+        [run_dir.join("ckpt"), run_dir.join("ckpt.old")].into_iter().find(|p| p.join("state.json").exists())
+    }
+
+    /// Resumes from `run_dir`'s checkpoint; `steps` (and `lr_decay_from` when given) override
+    /// the stored values.
+    pub fn resume(run_dir: &Path, steps: Option<u64>, lr_decay_from: Option<u64>) -> Result<Self, ModelError> {
+        let dir = Self::checkpoint_dir(run_dir)
+            .ok_or_else(|| ModelError::Checkpoint(format!("{}: no checkpoint (ckpt/state.json)", run_dir.display())))?;
+        let path = dir.join("state.json");
+        let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+        let state: CodeState = serde_json::from_slice(&bytes)
+            .map_err(|e| ModelError::Checkpoint(format!("{}: not a generative stage-2 state: {e}", path.display())))?;
+        if state.version != STATE_VERSION {
+            return Err(ModelError::Checkpoint(format!(
+                "{}: state version {} (this build reads {STATE_VERSION})",
+                path.display(),
+                state.version
+            )));
+        }
+        if !state.log_tau.is_finite() {
+            return Err(ModelError::Checkpoint(format!("{}: log_tau is {}", path.display(), state.log_tau)));
+        }
+        let weights = dir.join("model.safetensors");
+        let wbytes =
+            std::fs::read(&weights).map_err(|e| ModelError::Io(format!("reading {}: {e}", weights.display())))?;
+        let tensors =
+            from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
+        let mut train_config = state.train_config;
+        if let Some(s) = steps {
+            train_config.steps = s;
+        }
+        if lr_decay_from.is_some() {
+            train_config.lr_decay_from = lr_decay_from;
+        }
+        let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
+        let optim = dir.join("optim.bpk");
+        t.optim =
+            adam().load(&optim).map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", optim.display())))?;
+        // (checkpoints of the first training run have no optim_tau.bpk: tau's Adam restarts)
+        let optim_tau = dir.join("optim_tau.bpk");
+        if optim_tau.exists() {
+            t.optim_tau = adam()
+                .load(&optim_tau)
+                .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", optim_tau.display())))?;
+        }
+        t.temperature = CodeTemperature::from_log(state.log_tau, &t.device).train();
+        t.step = state.step;
+        t.rng = ChaCha8Rng::from_seed(state.rng_seed);
+        t.rng.set_stream(state.rng_stream);
+        t.rng.set_word_pos(state.rng_word_pos);
+        Ok(t)
+    }
+
+    /// Named f32 weights of the model (for tests comparing frozen parts).
+    pub fn weights(&self) -> std::collections::BTreeMap<String, NamedTensor> {
+        named_tensors(&self.model)
+    }
+}

@@ -1,0 +1,313 @@
+//! The generative stage 2: cross-entropy targets, calibrated temperature sampling, iterative
+//! (MaskGIT-style) sampling, ray channels, checkpoints, and a tiny model that learns a
+//! two-pattern world in the right proportion.
+
+use std::collections::BTreeMap;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use sgam_core::{Image, Intrinsics, RgbdFrame};
+use sgam_model::generative::{target_codes, CodePair, CodeTrainConfig, CodeTrainer};
+use sgam_model::packing::{pack_input, pack_values};
+use sgam_model::params::{named_tensors, NamedTensor};
+use sgam_model::quantize::{quantize, select_codes};
+use sgam_model::{default_device, ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
+
+fn frame(w: u32, h: u32, seed: u64) -> RgbdFrame {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let colour = (0..w * h).map(|_| [rng.random(), rng.random(), rng.random()]).collect();
+    let depth = (0..w * h).map(|_| rng.random_range(8.0..14.0)).collect();
+    RgbdFrame {
+        colour: Image { width: w, height: h, data: colour },
+        depth_m: Image { width: w, height: h, data: depth },
+    }
+}
+
+fn flat(w: u32, h: u32, top: [f32; 3], bottom: [f32; 3]) -> RgbdFrame {
+    let colour = (0..w * h).map(|p| if p / w < h / 2 { top } else { bottom }).collect();
+    RgbdFrame {
+        colour: Image { width: w, height: h, data: colour },
+        depth_m: Image { width: w, height: h, data: vec![10.0; (w * h) as usize] },
+    }
+}
+
+#[test]
+fn cross_entropy_targets_are_the_frozen_encoders_argmin_codes() {
+    let device = default_device();
+    let cfg = ModelConfig::tiny();
+    let model = VqModel::new(&cfg, 3, &device).unwrap();
+    let frames: Vec<RgbdFrame> = (0..3).map(|s| frame(16, 16, s)).collect();
+    let refs: Vec<&RgbdFrame> = frames.iter().collect();
+    let k = Intrinsics::from_fov_x(16, 16, 1.0);
+    let targets = target_codes(&model, &cfg, &refs, &[k; 3], &device).unwrap();
+    // the quantizer's own argmin on the same clean input
+    let (values, shape) = pack_values(&refs, &[None, None, None], &cfg.depth).unwrap();
+    let x =
+        sgam_model::burn::tensor::Tensor::from_data(sgam_model::burn::tensor::TensorData::new(values, shape), &device);
+    let q =
+        quantize(&model, model.encode(x), Sampling::Argmin, None, cfg.beta, &mut ChaCha8Rng::seed_from_u64(0)).unwrap();
+    let cells = (16 / cfg.downsample_factor()).pow(2);
+    assert_eq!(targets.len(), 3);
+    for (b, t) in targets.iter().enumerate() {
+        assert_eq!(t.as_slice(), &q.indices[b * cells..(b + 1) * cells], "frame {b}");
+    }
+    // different frames give different codes somewhere (the targets carry information)
+    assert_ne!(targets[0], targets[1]);
+}
+
+#[test]
+fn temperature_sampling_follows_the_softmax_of_the_distances() {
+    // one row of 6 codes; p_k = softmax(-d_k / T)
+    let dist = [0.3f32, 0.0, 0.9, 0.5, 2.0, 0.1];
+    let (n, k) = (20_000usize, dist.len());
+    let table: Vec<f32> = (0..n).flat_map(|_| dist).collect();
+    let missing = vec![true; n];
+    let t = 0.4f64;
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let drawn = select_codes(
+        &table,
+        n,
+        k,
+        Some(&missing),
+        Sampling::Temperature { temperature: t as f32, top_k: usize::MAX },
+        &mut rng,
+    );
+    let z: f64 = dist.iter().map(|d| (-(*d as f64) / t).exp()).sum();
+    let mut chi2 = 0.0;
+    for j in 0..k {
+        let expected = n as f64 * (-(dist[j] as f64) / t).exp() / z;
+        let observed = drawn.iter().filter(|&&c| c as usize == j).count() as f64;
+        chi2 += (observed - expected).powi(2) / expected;
+    }
+    // 5 degrees of freedom: the 0.1 % critical value is 20.5
+    assert!(chi2 < 20.5, "chi-square {chi2:.2}");
+    // T -> 0 is the argmin (code 1) in every row; observed rows always take the argmin
+    let cold = select_codes(
+        &table,
+        n,
+        k,
+        Some(&missing),
+        Sampling::Temperature { temperature: 1e-7, top_k: usize::MAX },
+        &mut rng,
+    );
+    assert!(cold.iter().all(|&c| c == 1));
+    let observed = vec![false; n];
+    let kept = select_codes(
+        &table,
+        n,
+        k,
+        Some(&observed),
+        Sampling::Temperature { temperature: t as f32, top_k: usize::MAX },
+        &mut rng,
+    );
+    assert!(kept.iter().all(|&c| c == 1));
+}
+
+#[test]
+fn ray_channels_carry_each_pixels_viewing_ray() {
+    let device = default_device();
+    let cfg = ModelConfig { ray_channels: true, ..ModelConfig::tiny() };
+    let f = frame(8, 6, 1);
+    // a crop's intrinsics: principal point shifted
+    let k = Intrinsics { width: 8, height: 6, fx: 20.0, fy: 25.0, cx: -3.0, cy: 10.0 };
+    let x = pack_input(&[&f], &[None], &[k], &cfg, &device).unwrap();
+    assert_eq!(x.dims(), [1, 7, 6, 8]);
+    let v = x.into_data().try_to_vec_as::<f32>().unwrap();
+    let hw = 48;
+    for (u, row) in [(0usize, 0usize), (7, 5), (3, 2)] {
+        let ray_x = v[5 * hw + row * 8 + u];
+        let ray_y = v[6 * hw + row * 8 + u];
+        assert!((ray_x - 2.0 * (u as f32 + 3.0) / 20.0).abs() < 1e-6, "{u},{row}: {ray_x}");
+        assert!((ray_y - 2.0 * (row as f32 - 10.0) / 25.0).abs() < 1e-6, "{u},{row}: {ray_y}");
+    }
+    // a ray model refuses to complete a frame without intrinsics
+    let model = VqModel::new(&cfg, 0, &device).unwrap();
+    let mut r = VqRefiner::new(model, cfg, RefinerOptions::default(), device);
+    let f = frame(16, 16, 2);
+    assert!(r.complete(&f, &vec![false; 256]).is_err());
+    assert!(r.complete_at(&f, &vec![false; 256], Some(&Intrinsics::from_fov_x(16, 16, 1.0))).is_ok());
+}
+
+#[test]
+fn iterative_sampling_commits_every_missing_cell_once_and_keeps_observed_pixels() {
+    let device = default_device();
+    let cfg = ModelConfig { code_tau: Some(0.5), ..ModelConfig::tiny() };
+    let model = VqModel::new(&cfg, 5, &device).unwrap();
+    let options = RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        cells_per_pass: 5,
+        max_passes: 4,
+        ..RefinerOptions::default()
+    };
+    let mut r = VqRefiner::new(model, cfg.clone(), options, device);
+    let (w, h) = (32u32, 32u32);
+    let f = frame(w, h, 9);
+    // a 12 x 16 pixel hole: 3 x 4 = 12 missing cells of 4 x 4 pixels
+    let missing: Vec<bool> = (0..w * h).map(|p| (8..20).contains(&(p % w)) && (12..28).contains(&(p / w))).collect();
+    let out = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
+    let trace = r.trace().clone();
+    let expected: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
+    assert_eq!(expected.len(), 12);
+    // ceil(12 / 5) = 3 passes, each committing at least one cell
+    assert_eq!(trace.passes.len(), 3, "{:?}", trace.passes);
+    assert!(trace.passes.iter().all(|p| !p.is_empty()));
+    let mut all: Vec<usize> = trace.passes.concat();
+    all.sort_unstable();
+    assert_eq!(all, expected, "every missing cell committed exactly once");
+    for (i, m) in missing.iter().enumerate() {
+        if !m {
+            assert_eq!(out.colour.data[i], f.colour.data[i]);
+            assert_eq!(out.depth_m.data[i], f.depth_m.data[i]);
+        }
+    }
+    // argmin is one pass and deterministic
+    r.set_options(RefinerOptions { sampling: Sampling::Argmin, ..RefinerOptions::default() });
+    let a = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
+    assert_eq!(r.trace().passes.len(), 1);
+    assert_eq!(r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap(), a);
+}
+
+/// A codebook where codes 3 and 7 are Voronoi neighbours (at +-x) and every other code lies
+/// far out in the orthogonal directions, so a distribution over just {3, 7} is expressible.
+fn two_code_codebook(cfg: &ModelConfig) -> Vec<f32> {
+    let d = cfg.embed_dim;
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut cb = vec![0.0f32; cfg.n_embed * d];
+    for k in 0..cfg.n_embed {
+        let row = &mut cb[k * d..(k + 1) * d];
+        match k {
+            3 => row[0] = 1.0,
+            7 => row[0] = -1.0,
+            _ => {
+                let mut v: Vec<f32> = (1..d).map(|_| rng.random_range(-1.0..1.0)).collect();
+                let n = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-3);
+                v.iter_mut().for_each(|x| *x *= 3.0 / n);
+                row[1..].copy_from_slice(&v);
+            }
+        }
+    }
+    cb
+}
+
+#[test]
+fn a_tiny_sampler_learns_a_two_pattern_world_in_its_proportions() {
+    // the world: the top half is grey and observed; the bottom half is missing and is pattern
+    // A (code 3 everywhere) three times in four, pattern B (code 7) once in four
+    let device = default_device();
+    let cfg = ModelConfig { ray_channels: true, ..ModelConfig::tiny() };
+    let base = VqModel::new(&ModelConfig::tiny(), 1, &device).unwrap();
+    let mut tensors: BTreeMap<String, NamedTensor> = named_tensors(&base);
+    tensors.insert(
+        "quantize.embedding.weight".into(),
+        NamedTensor { shape: vec![cfg.n_embed, cfg.embed_dim], values: two_code_codebook(&cfg) },
+    );
+    let (w, h) = (16u32, 16u32);
+    let f = cfg.downsample_factor() as u32;
+    let (cw, ch) = ((w / f) as usize, (h / f) as usize);
+    let input = flat(w, h, [0.5, 0.5, 0.5], [0.0, 0.0, 0.0]);
+    let missing: Vec<bool> = (0..w * h).map(|p| p / w >= h / 2).collect();
+    let k = Intrinsics::from_fov_x(w, h, 1.0);
+    let pattern = |code: u32| -> Vec<u32> { (0..cw * ch).map(|i| if i / cw >= ch / 2 { code } else { 0 }).collect() };
+    let pairs: Vec<CodePair> = [3u32, 3, 3, 7]
+        .iter()
+        .map(|&c| CodePair { input: input.clone(), missing: missing.clone(), intrinsics: k, codes: pattern(c) })
+        .collect();
+    let tc = CodeTrainConfig {
+        steps: 400,
+        batch: 8,
+        lr: 3e-2,
+        lr_decay_from: Some(200),
+        observed_weight: 0.2,
+        tau_lr_scale: 1.0,
+        target_smoothing: 0.0,
+        ..CodeTrainConfig::default()
+    };
+    let mut trainer = CodeTrainer::new(&cfg, &tensors, &tc).unwrap();
+    let first = trainer.evaluate(&pairs, 4).unwrap();
+    // every batch holds the world's proportions exactly (6 A, 2 B), so the optimum is the
+    // calibrated (3/4, 1/4) and not a batch's sampling noise
+    let batch: Vec<CodePair> = pairs.iter().chain(&pairs).cloned().collect();
+    for _ in 0..tc.steps {
+        trainer.step_on(&batch).unwrap();
+    }
+    let last = trainer.evaluate(&pairs, 4).unwrap();
+    // the best achievable cross-entropy on the missing cells is the entropy of (3/4, 1/4)
+    let entropy = -(0.75f32 * 0.75f32.ln() + 0.25 * 0.25f32.ln());
+    assert!(last.ce_missing < first.ce_missing, "{first:?} -> {last:?}");
+    assert!(last.ce_missing < entropy + 0.05, "CE {} vs entropy {entropy}", last.ce_missing);
+    // sampling at T = 1 through the refiner draws A and B in proportion
+    let config = trainer.exported_config().unwrap();
+    let options = RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        ..RefinerOptions::default()
+    };
+    let mut refiner = VqRefiner::new(trainer.model.clone(), config, options, device);
+    let cell = (ch - 1) * cw + 1; // a bottom cell
+    let n = 400;
+    let (mut a, mut b) = (0, 0);
+    for s in 0..n {
+        refiner.set_options(RefinerOptions { seed: s, ..options });
+        refiner.complete_at(&input, &missing, Some(&k)).unwrap();
+        let code = refiner.trace().codes[cell];
+        a += (code == 3) as usize;
+        b += (code == 7) as usize;
+    }
+    // a cross-entropy within 0.05 nats of the entropy leaves at most a few percent of the mass
+    // on other codes
+    assert!(a + b >= n as usize * 95 / 100, "only {} of {n} draws were pattern A or B", a + b);
+    let share = a as f64 / (a + b) as f64;
+    // binomial sd at n = 400 is 0.022; allow 3 sd plus the fit's own error
+    assert!((share - 0.75).abs() < 0.1, "pattern A drawn {share:.3} of the A/B draws ({a} / {b})");
+}
+
+#[test]
+fn checkpoints_resume_bit_identically_and_keep_the_decoder_frozen() {
+    let device = default_device();
+    let cfg = ModelConfig { ray_channels: true, ..ModelConfig::tiny() };
+    let base = VqModel::new(&ModelConfig::tiny(), 4, &device).unwrap();
+    let tensors = named_tensors(&base);
+    let k = Intrinsics::from_fov_x(16, 16, 1.0);
+    let pairs: Vec<CodePair> = (0..4)
+        .map(|s| {
+            let f = frame(16, 16, s);
+            let missing: Vec<bool> = (0..256).map(|p| p % 16 >= 8).collect();
+            CodePair {
+                input: f,
+                missing,
+                intrinsics: k,
+                codes: (0..16).map(|i| ((i * 5 + s as u32) % 32) as u32).collect(),
+            }
+        })
+        .collect();
+    let tc = CodeTrainConfig { steps: 6, batch: 2, ..CodeTrainConfig::default() };
+    let dir = tempfile::tempdir().unwrap();
+    let mut a = CodeTrainer::new(&cfg, &tensors, &tc).unwrap();
+    for i in 0..3 {
+        a.step_on(&pairs[i..i + 2]).unwrap();
+    }
+    a.save(dir.path()).unwrap();
+    let mut b = CodeTrainer::resume(dir.path(), None, None).unwrap();
+    assert_eq!(b.step, 3);
+    for i in 0..2 {
+        let ra = a.step_on(&pairs[i..i + 2]).unwrap();
+        let rb = b.step_on(&pairs[i..i + 2]).unwrap();
+        assert_eq!(ra, rb);
+    }
+    let (wa, wb) = (a.weights(), b.weights());
+    assert_eq!(wa, wb);
+    // frozen parts are bit-identical to the starting model; the encoder moved
+    for (name, t) in &tensors {
+        if name.starts_with("decoder.") || name.starts_with("quantize.") || name.contains("quant_conv") {
+            assert_eq!(&wa[name], t, "{name} changed");
+        }
+    }
+    assert_ne!(wa["encoder.conv_out.weight"], tensors["encoder.conv_out.weight"]);
+    // the ray channels start at zero weight: the widened conv_in equals the old one elsewhere
+    let old = &tensors["conv_in.weight"].values;
+    let fresh = CodeTrainer::new(&cfg, &tensors, &tc).unwrap().weights();
+    let new = &fresh["conv_in.weight"].values;
+    for o in 0..4 {
+        assert_eq!(&new[o * 7..o * 7 + 5], &old[o * 5..o * 5 + 5]);
+        assert_eq!(&new[o * 7 + 5..o * 7 + 7], &[0.0, 0.0]);
+    }
+}

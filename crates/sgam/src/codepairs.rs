@@ -1,0 +1,394 @@
+//! Training pairs for the generative stage 2, taken from the generation regime itself.
+//!
+//! A short run of the real generator ([`WorldGenerator`]) on a *training* scene, with the oracle
+//! (ground truth) as its refiner, produces at every step exactly the guidance that generation
+//! sees: the map fused from the poses the trajectory visited before, rasterized and warped by
+//! the generator's own code, with the holes of that trajectory. Each step's guidance, missing
+//! mask and clean target become a pair; the target's codes come from the frozen encoder.
+//!
+//! Runs mix the trajectories generation uses: the authors' zig-zag at its step (0.408 m; each
+//! step's hole is a small corner), the zig-zag at twice that step, straight lines (a band at
+//! the top of the frame) and spirals (turning views). A crop of `crop x crop` pixels, aligned
+//! to latent cells, is cut around each hole, so training runs at the encoder's speed on the
+//! pixels that matter; the crop's intrinsics keep the shifted principal point (ray channels).
+
+use std::sync::{Arc, Mutex};
+
+use anyhow::{Context, Result};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use sgam_core::{trajectory, Camera, Guidance, Image, Intrinsics, Refiner, RgbdFrame, Vec3};
+use sgam_map::TsdfMap;
+use sgam_model::generative::{target_codes, CodePair};
+use sgam_model::{ModelConfig, VqModel};
+use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
+
+use crate::generator::{clevr_generator_config, WorldGenerator};
+use crate::keyframes::Keyframes;
+
+/// One recorded generation step: guidance and the oracle's answer.
+struct Recorded {
+    guidance: Guidance,
+    truth: RgbdFrame,
+}
+
+/// The oracle refiner, recording what it was asked and what it answered.
+struct RecordingOracle {
+    renderer: Arc<Renderer>,
+    log: Arc<Mutex<Vec<Recorded>>>,
+}
+
+impl Refiner for RecordingOracle {
+    type Error = std::convert::Infallible;
+
+    fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, Self::Error> {
+        let truth = self.renderer.render(&guidance.camera, &RenderConfig::default()).frame;
+        if let Ok(mut log) = self.log.lock() {
+            log.push(Recorded { guidance: guidance.clone(), truth: truth.clone() });
+        }
+        Ok(truth)
+    }
+}
+
+/// The trajectory shapes pairs are drawn from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Shape {
+    Zigzag(f32),
+    Line(f32),
+    Spiral(f32),
+}
+
+fn draw_shape(rng: &mut ChaCha8Rng) -> Shape {
+    match rng.random_range(0..10) {
+        0..=4 => Shape::Zigzag(0.408),
+        5..=6 => Shape::Zigzag(0.816),
+        7..=8 => Shape::Line(rng.random_range(0.4..1.2)),
+        _ => Shape::Spiral(rng.random_range(0.4..0.8)),
+    }
+}
+
+/// Runs the generator with the oracle for `steps` steps on training scene `scene_seed` from a
+/// random start, returning every step's guidance and truth (the exact generation path).
+fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> Result<Vec<Recorded>> {
+    let renderer = Arc::new(Renderer::new(&Scene::generate(scene_seed, &SceneConfig::default())));
+    let start = Vec3::new(rng.random_range(-26.0..2.0), rng.random_range(-26.0..2.0), sgam_synth::CAMERA_HEIGHT_M);
+    let seed_camera = blender_camera(start, sgam_synth::CAMERA_PITCH_RAD, 0.0, dataset_intrinsics(res));
+    let s = &seed_camera.world_from_camera;
+    let poses = match draw_shape(rng) {
+        Shape::Zigzag(step) => {
+            let side = ((steps + 1) as f64).sqrt().ceil() as usize + 1;
+            let cells: Vec<_> = trajectory::zigzag_cells(side, side).into_iter().take(steps + 1).collect();
+            trajectory::grid_poses(s, &cells, step)
+        }
+        Shape::Line(step) => trajectory::line_poses(s, steps + 1, step),
+        Shape::Spiral(step) => trajectory::spiral_poses(s, steps + 1, step, 4.0),
+    };
+    let dir = tempfile::tempdir().context("creating a temporary keyframe folder")?;
+    let config = clevr_generator_config(scene_seed);
+    let log = Arc::new(Mutex::new(Vec::new()));
+    let oracle = RecordingOracle { renderer: renderer.clone(), log: log.clone() };
+    let keyframes = Keyframes::new(dir.path(), config.source_radius_m, 16);
+    let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, oracle, config);
+    let seed_frame = renderer.render(&seed_camera, &RenderConfig::default()).frame;
+    gen.seed(&seed_camera, seed_frame)?;
+    for pose in poses.iter().skip(1) {
+        gen.step(&Camera::new(seed_camera.intrinsics, *pose))?;
+    }
+    drop(gen);
+    let recorded = std::mem::take(&mut *log.lock().map_err(|_| anyhow::anyhow!("recording lock poisoned"))?);
+    Ok(recorded)
+}
+
+/// Cuts a `crop x crop` window (aligned to `factor`) around a random missing pixel of `rec`.
+fn crop_pair(rec: &Recorded, codes: &[u32], crop: u32, factor: u32, rng: &mut ChaCha8Rng) -> Option<CodePair> {
+    let k = rec.guidance.camera.intrinsics;
+    let (w, h) = (k.width, k.height);
+    let crop = crop.min(w).min(h) / factor * factor;
+    let missing: Vec<usize> = (0..rec.guidance.missing.len()).filter(|&i| rec.guidance.missing[i]).collect();
+    if missing.is_empty() || crop == 0 {
+        return None;
+    }
+    let p = missing[rng.random_range(0..missing.len())];
+    let (pu, pv) = ((p as u32) % w, (p as u32) / w);
+    let mut jitter = |c: u32| -> u32 {
+        let lo = c.saturating_sub(crop - factor);
+        let v = rng.random_range(lo..=c);
+        v.min(w.min(h) - crop) / factor * factor
+    };
+    let (u0, v0) = (jitter(pu).min(w - crop), jitter(pv).min(h - crop));
+    let cut = |img: &Image<f32>| -> Image<f32> {
+        let data =
+            (v0..v0 + crop).flat_map(|v| (u0..u0 + crop).map(move |u| (u, v))).map(|(u, v)| *img.at(u, v)).collect();
+        Image { width: crop, height: crop, data }
+    };
+    let colour = Image {
+        width: crop,
+        height: crop,
+        data: (v0..v0 + crop)
+            .flat_map(|v| (u0..u0 + crop).map(move |u| (u, v)))
+            .map(|(u, v)| *rec.guidance.frame.colour.at(u, v))
+            .collect(),
+    };
+    let mask = (v0..v0 + crop)
+        .flat_map(|v| (u0..u0 + crop).map(move |u| (v * w + u) as usize))
+        .map(|i| rec.guidance.missing[i])
+        .collect();
+    let (cw, c0, r0, cc) =
+        ((w / factor) as usize, (u0 / factor) as usize, (v0 / factor) as usize, (crop / factor) as usize);
+    let crop_codes = (r0..r0 + cc).flat_map(|r| (c0..c0 + cc).map(move |c| r * cw + c)).map(|i| codes[i]).collect();
+    Some(CodePair {
+        input: RgbdFrame { colour, depth_m: cut(&rec.guidance.frame.depth_m) },
+        missing: mask,
+        intrinsics: Intrinsics { width: crop, height: crop, cx: k.cx - u0 as f32, cy: k.cy - v0 as f32, ..k },
+        codes: crop_codes,
+    })
+}
+
+/// Collects `n` pairs from runs of `steps_per_run` steps on random scenes below
+/// `scene_limit` (training scenes only), with target codes from the frozen `target` model.
+/// `progress` is called with the number of pairs so far.
+pub fn collect(
+    n: usize,
+    steps_per_run: usize,
+    crop: u32,
+    scene_limit: u64,
+    target: (&VqModel, &ModelConfig),
+    rng: &mut ChaCha8Rng,
+    progress: &mut dyn FnMut(usize),
+) -> Result<Vec<CodePair>> {
+    let device = sgam_model::default_device();
+    let factor = target.1.downsample_factor() as u32;
+    let mut pairs = Vec::with_capacity(n);
+    while pairs.len() < n {
+        let scene = rng.random_range(0..scene_limit);
+        let recorded = record_run(scene, steps_per_run, 256, rng)?;
+        for chunk in recorded.chunks(8) {
+            let truths: Vec<&RgbdFrame> = chunk.iter().map(|r| &r.truth).collect();
+            let intr: Vec<Intrinsics> = chunk.iter().map(|r| r.guidance.camera.intrinsics).collect();
+            let codes = target_codes(target.0, target.1, &truths, &intr, &device)?;
+            for (rec, codes) in chunk.iter().zip(&codes) {
+                if pairs.len() < n {
+                    if let Some(p) = crop_pair(rec, codes, crop, factor, rng) {
+                        pairs.push(p);
+                    }
+                }
+            }
+        }
+        progress(pairs.len());
+    }
+    Ok(pairs)
+}
+
+/// What a pair cache was recorded with; a cache is used only when all of it matches.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CacheKey {
+    /// Format version.
+    pub version: u32,
+    /// Pairs recorded.
+    pub pairs: usize,
+    /// Steps per generator run.
+    pub steps_per_run: usize,
+    /// Crop side, pixels.
+    pub crop: u32,
+    /// Training scenes 0..scenes.
+    pub scenes: u64,
+    /// RNG seed and stream.
+    pub seed: u64,
+    /// RNG stream.
+    pub stream: u64,
+}
+
+const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
+
+/// Writes pairs atomically: magic, key JSON length + JSON, then per pair its size, intrinsics,
+/// 8-bit colour, f32 depth, mask bytes and u32 codes; a CRC-32 of everything before it last.
+/// Colour is stored as 8 bits: generated guidance colour is 8-bit already (quantised keyframes).
+pub fn write_cache(path: &std::path::Path, key: &CacheKey, pairs: &[CodePair]) -> Result<()> {
+    let mut b: Vec<u8> = Vec::new();
+    b.extend_from_slice(CACHE_MAGIC);
+    let json = serde_json::to_vec(key)?;
+    b.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    b.extend_from_slice(&json);
+    b.extend_from_slice(&(pairs.len() as u64).to_le_bytes());
+    for p in pairs {
+        let k = p.intrinsics;
+        for v in [k.width, k.height] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [k.fx, k.fy, k.cx, k.cy] {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend(p.input.colour.data.iter().flat_map(|c| c.map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8)));
+        b.extend(p.input.depth_m.data.iter().flat_map(|d| d.to_le_bytes()));
+        b.extend(p.missing.iter().map(|m| *m as u8));
+        b.extend_from_slice(&(p.codes.len() as u64).to_le_bytes());
+        b.extend(p.codes.iter().flat_map(|c| c.to_le_bytes()));
+    }
+    let crc = crc32fast::hash(&b);
+    b.extend_from_slice(&crc.to_le_bytes());
+    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, &b))?;
+    Ok(())
+}
+
+/// Reads a cache written by [`write_cache`]; `Ok(None)` when it was recorded with another key.
+pub fn read_cache(path: &std::path::Path, key: &CacheKey) -> Result<Option<Vec<CodePair>>> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let bad = |what: &str| anyhow::anyhow!("{}: {what}", path.display());
+    if bytes.len() < 20 || &bytes[..8] != CACHE_MAGIC {
+        return Err(bad("not a pair cache"));
+    }
+    let (body, crc) = bytes.split_at(bytes.len() - 4);
+    if crc32fast::hash(body) != u32::from_le_bytes([crc[0], crc[1], crc[2], crc[3]]) {
+        return Err(bad("checksum mismatch (corrupt or truncated); delete it to record again"));
+    }
+    let mut at = 8usize;
+    let mut take = |n: usize| -> Result<&[u8]> {
+        let s = body.get(at..at + n).ok_or_else(|| bad("truncated"))?;
+        at += n;
+        Ok(s)
+    };
+    let u64_of = |s: &[u8]| u64::from_le_bytes(s.try_into().unwrap_or([0; 8]));
+    let json_len = u64_of(take(8)?) as usize;
+    let stored: CacheKey = serde_json::from_slice(take(json_len)?).map_err(|e| bad(&format!("key: {e}")))?;
+    if &stored != key {
+        return Ok(None);
+    }
+    let n = u64_of(take(8)?) as usize;
+    let mut pairs = Vec::with_capacity(n.min(1 << 20));
+    for _ in 0..n {
+        let u32_of = |s: &[u8]| u32::from_le_bytes(s.try_into().unwrap_or([0; 4]));
+        let (w, h) = (u32_of(take(4)?), u32_of(take(4)?));
+        let f: Vec<f32> = (0..4)
+            .map(|_| take(4).map(|s| f32::from_le_bytes(s.try_into().unwrap_or([0; 4]))))
+            .collect::<Result<_>>()?;
+        let hw = (w as usize).checked_mul(h as usize).filter(|&x| x <= 1 << 24).ok_or_else(|| bad("bad size"))?;
+        let colour = take(hw * 3)?
+            .chunks_exact(3)
+            .map(|c| [c[0] as f32 / 255.0, c[1] as f32 / 255.0, c[2] as f32 / 255.0])
+            .collect();
+        let depth = take(hw * 4)?.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let missing = take(hw)?.iter().map(|m| *m != 0).collect();
+        let nc = u64_of(take(8)?) as usize;
+        if nc > hw {
+            return Err(bad("bad code count"));
+        }
+        let codes = take(nc * 4)?.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect();
+        let intrinsics =
+            Intrinsics::try_new(w, h, f[0], f[1], f[2], f[3]).map_err(|e| bad(&format!("intrinsics: {e}")))?;
+        pairs.push(CodePair {
+            input: RgbdFrame {
+                colour: Image { width: w, height: h, data: colour },
+                depth_m: Image { width: w, height: h, data: depth },
+            },
+            missing,
+            intrinsics,
+            codes,
+        });
+    }
+    Ok(Some(pairs))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use sgam_map::SourceView;
+
+    #[test]
+    fn recorded_guidance_is_the_one_guidance_function_of_the_same_map_and_sources() {
+        // a generator run records what it handed the refiner; rebuilding the map from the same
+        // frames and calling render_guidance with the same sources must give the same image
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let recorded = record_run(11, 4, 64, &mut rng).unwrap();
+        assert_eq!(recorded.len(), 4);
+        let config = clevr_generator_config(11);
+        // replay: the map holds the seed and steps 1..3; the guidance of step 4 comes from it
+        let renderer = Renderer::new(&Scene::generate(11, &SceneConfig::default()));
+        let mut map = TsdfMap::new(config.tsdf);
+        let first = &recorded[0].guidance.camera;
+        // the seed camera: record_run's first draws are the start position
+        let seed_cam = {
+            let mut rng2 = ChaCha8Rng::seed_from_u64(4);
+            let start =
+                Vec3::new(rng2.random_range(-26.0..2.0), rng2.random_range(-26.0..2.0), sgam_synth::CAMERA_HEIGHT_M);
+            blender_camera(start, sgam_synth::CAMERA_PITCH_RAD, 0.0, first.intrinsics)
+        };
+        let seed_frame = renderer.render(&seed_cam, &RenderConfig::default()).frame;
+        let mut frames: Vec<(Camera, RgbdFrame)> = vec![(seed_cam, seed_frame)];
+        for r in &recorded[..3] {
+            frames.push((r.guidance.camera, r.truth.clone()));
+        }
+        for (c, f) in &frames {
+            let mut f = f.clone();
+            crate::keyframes::quantise_colour(&mut f.colour);
+            map.integrate(&f, c);
+            map.update_mesh(config.weight_threshold);
+        }
+        let target = &recorded[3].guidance;
+        // sources: the nearest 5 within 1 m of the target, nearest first (the keyframe rule)
+        let mut near: Vec<(f32, usize)> = frames
+            .iter()
+            .enumerate()
+            .map(|(i, (c, _))| ((c.centre_world() - target.camera.centre_world()).length(), i))
+            .filter(|(d, _)| *d <= config.source_radius_m)
+            .collect();
+        near.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let quantised: Vec<(Camera, RgbdFrame)> = frames
+            .iter()
+            .map(|(c, f)| {
+                let mut f = f.clone();
+                crate::keyframes::quantise_colour(&mut f.colour);
+                (*c, f)
+            })
+            .collect();
+        let views: Vec<SourceView<'_>> = near
+            .iter()
+            .take(config.k_sources)
+            .map(|(_, i)| SourceView { camera: &quantised[*i].0, frame: &quantised[*i].1 })
+            .collect();
+        let (g, _) = crate::generator::render_guidance(&mut map, &target.camera, &views, &config.warp, target.seed);
+        assert_eq!(g.missing, target.missing);
+        assert_eq!(g.frame, target.frame);
+        assert!(target.missing.iter().any(|m| !m), "the guidance shows the map");
+    }
+
+    #[test]
+    fn pair_cache_round_trips_and_rejects_other_keys_and_corruption() {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let k = Intrinsics::from_fov_x(16, 16, 1.0);
+        let pairs: Vec<CodePair> = (0..3)
+            .map(|i| {
+                let colour = (0..256).map(|_| [rng.random_range(0..=255) as f32 / 255.0, 128.0 / 255.0, 1.0]).collect();
+                let depth = (0..256).map(|_| rng.random_range(7.0..16.0)).collect();
+                CodePair {
+                    input: RgbdFrame {
+                        colour: Image { width: 16, height: 16, data: colour },
+                        depth_m: Image { width: 16, height: 16, data: depth },
+                    },
+                    missing: (0..256).map(|p| (p + i) % 3 == 0).collect(),
+                    intrinsics: Intrinsics { cx: 3.0 - i as f32, ..k },
+                    codes: (0..4).map(|c| c * 100 + i as u32).collect(),
+                }
+            })
+            .collect();
+        let key = CacheKey { version: 1, pairs: 3, steps_per_run: 5, crop: 16, scenes: 10, seed: 2, stream: 1 };
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("pairs.bin");
+        write_cache(&path, &key, &pairs).unwrap();
+        let back = read_cache(&path, &key).unwrap().unwrap();
+        assert_eq!(back.len(), 3);
+        for (a, b) in pairs.iter().zip(&back) {
+            assert_eq!(a.input, b.input);
+            assert_eq!(a.missing, b.missing);
+            assert_eq!(a.intrinsics, b.intrinsics);
+            assert_eq!(a.codes, b.codes);
+        }
+        assert!(read_cache(&path, &CacheKey { seed: 3, ..key.clone() }).unwrap().is_none());
+        let mut bytes = std::fs::read(&path).unwrap();
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x10;
+        std::fs::write(&path, &bytes).unwrap();
+        let err = read_cache(&path, &key).unwrap_err().to_string();
+        assert!(err.contains("checksum") && err.contains("pairs.bin"), "{err}");
+    }
+}

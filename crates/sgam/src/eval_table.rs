@@ -1,0 +1,217 @@
+//! `sgam eval table`: the baselines table in the shape of the paper's Tables 1 and 2, plus our
+//! world statistics, from `eval world` and `eval one-step` over a fixed set of refiners.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+
+use crate::eval::OneStepArgs;
+use crate::eval_world::WorldArgs;
+use crate::generate::{GenerateArgs, RefinerKind};
+
+/// Arguments of `sgam eval table`.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Example:\n  sgam eval table --out runs/table      # writes runs/table/table.md and overviews.png\n\nRows: the bundled model sampled (T = 1) and argmin (T = 0), the null stand-in (push-pull),\n--no-map (warp from the previous frame only), --no-refine (guidance fused with its holes) and\nthe oracle. World columns come from `eval world` (held-out seeds, against the oracle), image\ncolumns from `eval one-step`."
+)]
+pub struct TableArgs {
+    /// Held-out seeds per world evaluation.
+    #[arg(long, default_value_t = 4)]
+    pub seeds: u64,
+    /// Steps per world.
+    #[arg(long, default_value_t = 400)]
+    pub steps: usize,
+    /// Held-out scenes of the one-step evaluation.
+    #[arg(long, default_value_t = 8)]
+    pub one_step_scenes: u64,
+    /// Model weights (default: the bundled model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Output folder (worlds, table.md, table.json, overviews.png).
+    #[arg(long, default_value = "runs/table")]
+    pub out: PathBuf,
+}
+
+struct Row {
+    name: &'static str,
+    refiner: RefinerKind,
+    temperature: f32,
+    no_map: bool,
+    no_refine: bool,
+}
+
+const ROWS: [Row; 6] = [
+    Row {
+        name: "model, sampled (T = 1, default)",
+        refiner: RefinerKind::Auto,
+        temperature: 1.0,
+        no_map: false,
+        no_refine: false,
+    },
+    Row {
+        name: "model, argmin (T = 0)",
+        refiner: RefinerKind::Auto,
+        temperature: 0.0,
+        no_map: false,
+        no_refine: false,
+    },
+    Row {
+        name: "null stand-in (push-pull)",
+        refiner: RefinerKind::Null,
+        temperature: 0.0,
+        no_map: false,
+        no_refine: false,
+    },
+    Row {
+        name: "--no-map (model, T = 1)",
+        refiner: RefinerKind::Auto,
+        temperature: 1.0,
+        no_map: true,
+        no_refine: false,
+    },
+    Row { name: "--no-refine", refiner: RefinerKind::Auto, temperature: 0.0, no_map: false, no_refine: true },
+    Row {
+        name: "oracle (true world)",
+        refiner: RefinerKind::Oracle,
+        temperature: 0.0,
+        no_map: false,
+        no_refine: false,
+    },
+];
+
+fn f(v: &serde_json::Value, digits: usize) -> String {
+    match v.as_f64() {
+        Some(x) if x.is_finite() => format!("{x:.digits$}"),
+        _ => "-".into(),
+    }
+}
+
+/// Runs `sgam eval table`.
+pub fn run(a: &TableArgs) -> Result<()> {
+    std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
+    let mut lines = Vec::new();
+    let mut json_rows = Vec::new();
+    let mut overviews = Vec::new();
+    for row in &ROWS {
+        eprintln!("== {}", row.name);
+        let wa = WorldArgs {
+            seeds: a.seeds,
+            steps: a.steps,
+            trajectory: crate::generate::TrajectoryKind::Zigzag,
+            step: None,
+            refiner: row.refiner,
+            model: a.model.clone(),
+            temperature: row.temperature,
+            no_map: row.no_map,
+            no_refine: row.no_refine,
+            paper: false,
+            region_size: 5.0,
+            out: Some(a.out.clone()),
+            json: true,
+        };
+        let world = crate::eval_world::evaluate(&wa)?;
+        let one = if row.refiner == RefinerKind::Oracle || row.no_map {
+            serde_json::Value::Null
+        } else {
+            let os = OneStepArgs {
+                scenes: a.one_step_scenes,
+                views: 4,
+                res: 256,
+                refiner: row.refiner,
+                model: a.model.clone(),
+                regenerate_observed: false,
+                autoencode: false,
+                json: true,
+            };
+            let mut g = GenerateArgs::for_refiner(
+                if row.no_refine { RefinerKind::Null } else { row.refiner },
+                a.model.clone(),
+                false,
+            );
+            g.temperature = row.temperature;
+            g.no_refine = row.no_refine;
+            match crate::generate::model_refiner(g.refiner, &g)? {
+                Some(mut m) if !row.no_refine => crate::eval::one_step(&os, &mut m)?,
+                _ => crate::eval::one_step(&os, &mut crate::refiners::NullRefiner { fill: !row.no_refine })?,
+            }
+        };
+        let g = &world["generated"];
+        let sc = &world["scene"];
+        lines.push(format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            row.name,
+            f(&one["psnr"], 2),
+            f(&one["ssim"], 3),
+            f(&world["kid"], 4),
+            f(&sc["jsd"], 4),
+            f(&sc["mmd"], 4),
+            f(&sc["cov"], 3),
+            f(&sc["min_dist"], 4),
+            f(&sc["one_nna"], 3),
+            f(&g["objects_per_100m2"], 2),
+            f(&g["median_object_area_m2"], 2),
+            f(&g["object_saturation"], 3),
+            f(&g["ground_rms_mm"], 0),
+            f(&world["step_ms_median"], 0),
+        ));
+        let label_dir = a.out.join(format!("seed-{}", crate::generate::HELD_OUT_SEED_BASE));
+        let label = if row.refiner == RefinerKind::Oracle { "oracle".to_string() } else { wa_label(&wa) };
+        overviews.push(label_dir.join(label).join("overview.png"));
+        json_rows.push(serde_json::json!({ "row": row.name, "world": world, "one_step": one }));
+    }
+    let mut md = String::new();
+    md += &format!(
+        "Held-out seeds {}..{}, {}-step zig-zag (one world per seed and refiner, compared with the oracle's world of the same seed); one-step: {} held-out scenes x 4 views.\n\n",
+        crate::generate::HELD_OUT_SEED_BASE,
+        crate::generate::HELD_OUT_SEED_BASE + a.seeds - 1,
+        a.steps,
+        a.one_step_scenes
+    );
+    md += "| refiner | PSNR | SSIM | KID | JSD | MMD | COV | MinDist | 1-NNA | objects / 100 m² | median footprint m² | object saturation | ground RMS mm | ms / step |\n";
+    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+    for l in &lines {
+        md += l;
+        md += "\n";
+    }
+    let md_path = a.out.join("table.md");
+    sgam_io::write_atomic(&md_path, |w| w.write_all(md.as_bytes()))?;
+    let json = serde_json::to_vec_pretty(&json_rows)?;
+    sgam_io::write_atomic(&a.out.join("table.json"), |w| w.write_all(&json))?;
+    let pic = a.out.join("overviews.png");
+    write_overviews(&overviews, &pic)?;
+    print!("{md}");
+    eprintln!("table: {}  overviews (rows in table order, 3 per line): {}", md_path.display(), pic.display());
+    Ok(())
+}
+
+fn wa_label(wa: &WorldArgs) -> String {
+    wa.label()
+}
+
+/// The overview pictures side by side, 3 per line, each scaled to 480 px wide.
+fn write_overviews(paths: &[PathBuf], out: &std::path::Path) -> Result<()> {
+    let tiles: Vec<image::RgbImage> = paths
+        .iter()
+        .filter_map(|p| image::open(p).ok())
+        .map(|i| i.resize(480, 300, image::imageops::FilterType::Triangle).to_rgb8())
+        .collect();
+    if tiles.is_empty() {
+        return Ok(());
+    }
+    let (tw, th) = (480u32, tiles.iter().map(|t| t.height()).max().unwrap_or(300));
+    let cols = 3u32;
+    let rows = (tiles.len() as u32).div_ceil(cols);
+    let mut canvas = image::RgbImage::from_pixel(tw * cols, th * rows, image::Rgb([255, 255, 255]));
+    for (i, t) in tiles.iter().enumerate() {
+        let (x, y) = ((i as u32 % cols) * tw, (i as u32 / cols) * th);
+        image::imageops::overlay(&mut canvas, t, x as i64, y as i64);
+    }
+    let mut bytes = Vec::new();
+    image::DynamicImage::ImageRgb8(canvas)
+        .write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
+        .context("encoding the overview picture")?;
+    sgam_io::write_atomic(out, |w| w.write_all(&bytes))?;
+    Ok(())
+}

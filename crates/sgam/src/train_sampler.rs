@@ -1,0 +1,206 @@
+//! `sgam train sampler`: the generative stage 2 (see `sgam_model::generative`).
+
+use std::io::Write;
+
+use anyhow::{bail, Context, Result};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use sgam_model::generative::{CodeTrainConfig, CodeTrainer};
+use sgam_model::params::from_safetensors_bytes;
+
+use crate::generate::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
+use crate::progress;
+use crate::train::SamplerArgs;
+
+fn validate(a: &SamplerArgs) -> Result<()> {
+    if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
+        bail!("--scenes {} must be in 1..={HELD_OUT_SEED_BASE} (held-out seeds start there)", a.scenes);
+    }
+    if a.batch == 0 || a.batch > 256 {
+        bail!("--batch {} must be in 1..=256", a.batch);
+    }
+    if a.pairs < a.batch || a.pairs > 200_000 {
+        bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.batch);
+    }
+    if !(a.lr.is_finite() && a.lr > 0.0 && a.lr < 1.0) {
+        bail!("--lr {} must be a positive number below 1", a.lr);
+    }
+    if !(a.observed_weight.is_finite() && a.observed_weight >= 0.0) {
+        bail!("--observed-weight {} must be a non-negative number", a.observed_weight);
+    }
+    if !(a.target_smoothing.is_finite() && (0.0..=100.0).contains(&a.target_smoothing)) {
+        bail!("--target-smoothing {} must be between 0 and 100", a.target_smoothing);
+    }
+    if let Some(from) = a.lr_decay_from {
+        if from >= a.steps {
+            bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
+        }
+    }
+    if a.steps_per_run == 0 || a.steps_per_run > 1000 {
+        bail!("--steps-per-run {} must be in 1..=1000", a.steps_per_run);
+    }
+    if !(16..=256).contains(&a.crop) {
+        bail!("--crop {} must be in 16..=256", a.crop);
+    }
+    Ok(())
+}
+
+/// Runs `sgam train sampler`.
+pub fn run(a: &SamplerArgs) -> Result<()> {
+    validate(a)?;
+    std::fs::create_dir_all(&a.run).with_context(|| format!("{}: cannot create the run folder", a.run.display()))?;
+    let device = sgam_model::default_device();
+    // the frozen target encoder: a copy of the starting model, kept with the run
+    let target_path = a.run.join("target.safetensors");
+    if !target_path.exists() {
+        let bytes = match &a.init {
+            Some(p) => std::fs::read(p).with_context(|| format!("{}: cannot read --init", p.display()))?,
+            None => BUNDLED_MODEL.to_vec(),
+        };
+        sgam_io::write_atomic(&target_path, |w| w.write_all(&bytes))?;
+    }
+    let (target_model, target_config) = sgam_model::refiner::load_model(&target_path, None, &device)
+        .with_context(|| format!("{}: cannot load the target model", target_path.display()))?;
+    if a.crop as usize % target_config.downsample_factor() != 0 {
+        bail!(
+            "--crop {} must be a multiple of the model's downsampling factor {}",
+            a.crop,
+            target_config.downsample_factor()
+        );
+    }
+    let mut trainer = if CodeTrainer::checkpoint_dir(&a.run).is_some() {
+        let t = CodeTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)?;
+        eprintln!("resuming {} at step {}", a.run.display(), t.step);
+        t
+    } else {
+        let tc = CodeTrainConfig {
+            steps: a.steps,
+            batch: a.batch,
+            lr: a.lr,
+            lr_decay_from: a.lr_decay_from,
+            observed_weight: a.observed_weight,
+            target_smoothing: a.target_smoothing,
+            ckpt_every: a.ckpt_every,
+            seed: a.seed,
+            ..CodeTrainConfig::default()
+        };
+        let mut cfg = target_config.clone();
+        cfg.ray_channels = !a.no_rays;
+        cfg.code_head = !a.distance_logits;
+        cfg.code_tau = None;
+        let bytes = std::fs::read(&target_path).with_context(|| format!("{}: cannot read", target_path.display()))?;
+        let tensors = from_safetensors_bytes(&bytes).with_context(|| format!("{}", target_path.display()))?.0;
+        CodeTrainer::new(&cfg, &tensors, &tc)?
+    };
+    // pairs: recorded from the generator with the oracle, deterministic from --seed
+    // recorded once per run folder and cached there (RUN/pairs-*.bin), so a restart or a resume
+    // trains at once
+    let record = |n: usize, stream: u64, what: &str| -> Result<Vec<_>> {
+        let key = crate::codepairs::CacheKey {
+            version: 1,
+            pairs: n,
+            steps_per_run: a.steps_per_run,
+            crop: a.crop,
+            scenes: a.scenes,
+            seed: a.seed,
+            stream,
+        };
+        let path = a.run.join(format!("pairs-{stream}.bin"));
+        if path.exists() {
+            match crate::codepairs::read_cache(&path, &key)? {
+                Some(p) => return Ok(p),
+                None => eprintln!("{}: recorded with other options; recording again", path.display()),
+            }
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
+        rng.set_stream(stream);
+        let pb = progress::bar(n as u64, what);
+        let pairs = crate::codepairs::collect(
+            n,
+            a.steps_per_run,
+            a.crop,
+            a.scenes,
+            (&target_model, &target_config),
+            &mut rng,
+            &mut |k| pb.set_position(k as u64),
+        )?;
+        pb.finish_and_clear();
+        crate::codepairs::write_cache(&path, &key, &pairs)?;
+        Ok(pairs)
+    };
+    let started = std::time::Instant::now();
+    let train_pairs = record(a.pairs, 1, "recording training pairs")?;
+    let val_pairs = record(a.val_pairs, 2, "recording validation pairs")?;
+    eprintln!(
+        "{} training + {} validation pairs ready in {:.0} s",
+        train_pairs.len(),
+        val_pairs.len(),
+        started.elapsed().as_secs_f64()
+    );
+    let open_log = |name: &str| {
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(a.run.join(name))
+            .with_context(|| format!("{}: cannot open {name}", a.run.display()))
+    };
+    let (mut log, mut val_log) = (open_log("log.jsonl")?, open_log("val.jsonl")?);
+    let steps = trainer.train_config.steps;
+    let pb = progress::bar(steps, "training");
+    pb.set_position(trainer.step);
+    let is_terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let t0 = std::time::Instant::now();
+    let first = trainer.step;
+    let mut validate = |trainer: &CodeTrainer, pb: &indicatif::ProgressBar| -> Result<()> {
+        let v = trainer.evaluate(&val_pairs, 16)?;
+        let line = format!(
+            "step {}: validation CE missing {:.3} (acc {:.3}), observed {:.3} (acc {:.3}), tau {:.4}",
+            trainer.step, v.ce_missing, v.acc_missing, v.ce_observed, v.acc_observed, v.tau
+        );
+        if pb.is_hidden() {
+            eprintln!("{line}");
+        } else {
+            pb.println(line);
+        }
+        writeln!(val_log, "{}", serde_json::json!({ "step": trainer.step, "report": v }))?;
+        Ok(())
+    };
+    if trainer.step == 0 {
+        validate(&trainer, &pb)?;
+    }
+    while trainer.step < steps {
+        let batch: Vec<_> = (0..trainer.train_config.batch)
+            .map(|_| train_pairs[trainer.rng.random_range(0..train_pairs.len())].clone())
+            .collect();
+        let r = trainer.step_on(&batch)?;
+        let rate =
+            (trainer.step - first) as f64 * trainer.train_config.batch as f64 / t0.elapsed().as_secs_f64().max(1e-6);
+        writeln!(log, "{}", serde_json::json!({ "report": r, "pairs_per_s": rate }))?;
+        pb.set_position(r.step);
+        pb.set_message(format!(
+            "CE missing {:.3} observed {:.3} tau {:.4} {:.1} pairs/s",
+            r.ce_missing, r.ce_observed, r.tau, rate
+        ));
+        if !is_terminal && r.step % 50 == 0 {
+            eprintln!(
+                "step {} CE missing {:.3} (acc {:.2}) observed {:.3} (acc {:.2}) tau {:.4} ({:.1} pairs/s)",
+                r.step, r.ce_missing, r.acc_missing, r.ce_observed, r.acc_observed, r.tau, rate
+            );
+        }
+        if r.step % trainer.train_config.ckpt_every.max(1) == 0 {
+            trainer.save(&a.run)?;
+        }
+        if a.val_every > 0 && r.step % a.val_every == 0 {
+            validate(&trainer, &pb)?;
+        }
+    }
+    trainer.save(&a.run)?;
+    pb.finish_and_clear();
+    eprintln!(
+        "trained to step {}; weights: {} (export with: sgam train export {} models/compact.safetensors)",
+        trainer.step,
+        a.run.join("ckpt/model.safetensors").display(),
+        a.run.join("ckpt/model.safetensors").display()
+    );
+    Ok(())
+}
