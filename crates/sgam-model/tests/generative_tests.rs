@@ -271,12 +271,7 @@ fn checkpoints_resume_bit_identically_and_keep_the_decoder_frozen() {
         .map(|s| {
             let f = frame(16, 16, s);
             let missing: Vec<bool> = (0..256).map(|p| p % 16 >= 8).collect();
-            CodePair {
-                input: f,
-                missing,
-                intrinsics: k,
-                codes: (0..16).map(|i| ((i * 5 + s as u32) % 32) as u32).collect(),
-            }
+            CodePair { input: f, missing, intrinsics: k, codes: (0..16).map(|i| (i * 5 + s as u32) % 32).collect() }
         })
         .collect();
     let tc = CodeTrainConfig { steps: 6, batch: 2, ..CodeTrainConfig::default() };

@@ -140,7 +140,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
         let g = &world["generated"];
         let sc = &world["scene"];
         lines.push(format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} | {} |",
             row.name,
             f(&one["psnr"], 2),
             f(&one["ssim"], 3),
@@ -154,6 +154,8 @@ pub fn run(a: &TableArgs) -> Result<()> {
             f(&g["median_object_area_m2"], 2),
             f(&g["object_saturation"], 3),
             f(&g["ground_rms_mm"], 0),
+            f(&world["loop"]["psnr"], 1),
+            f(&world["loop"]["ssim"], 3),
             f(&world["step_ms_median"], 0),
         ));
         let label_dir = a.out.join(format!("seed-{}", crate::generate::HELD_OUT_SEED_BASE));
@@ -169,8 +171,8 @@ pub fn run(a: &TableArgs) -> Result<()> {
         a.steps,
         a.one_step_scenes
     );
-    md += "| refiner | PSNR | SSIM | KID | JSD | MMD | COV | MinDist | 1-NNA | objects / 100 m² | median footprint m² | object saturation | ground RMS mm | ms / step |\n";
-    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+    md += "| refiner | PSNR | SSIM | KID | JSD | MMD | COV | MinDist | 1-NNA | objects / 100 m² | median footprint m² | object saturation | ground RMS mm | loop PSNR / SSIM | ms / step |\n";
+    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for l in &lines {
         md += l;
         md += "\n";

@@ -115,7 +115,7 @@ impl WorldArgs {
         if seeds == 0 || seeds > 1000 {
             bail!("--seeds {seeds} must be in 1..=1000");
         }
-        if steps < 10 || steps > 100_000 {
+        if !(10..=100_000).contains(&steps) {
             bail!("--steps {steps} must be in 10..=100000");
         }
         if !(self.temperature.is_finite() && self.temperature >= 0.0) {
@@ -297,7 +297,7 @@ impl FeatureExtractor {
     /// encoder's 64 channels.
     pub fn features(&self, frame: &sgam_core::RgbdFrame) -> Result<Vec<f32>> {
         let f = self.config.downsample_factor();
-        if frame.width() as usize % f != 0 || frame.height() as usize % f != 0 {
+        if !(frame.width() as usize).is_multiple_of(f) || !(frame.height() as usize).is_multiple_of(f) {
             bail!("frame of {}x{} is not a multiple of {f}", frame.width(), frame.height());
         }
         let k = sgam_core::Intrinsics::from_fov_x(frame.width(), frame.height(), 1.0);

@@ -61,7 +61,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     }
     let (target_model, target_config) = sgam_model::refiner::load_model(&target_path, None, &device)
         .with_context(|| format!("{}: cannot load the target model", target_path.display()))?;
-    if a.crop as usize % target_config.downsample_factor() != 0 {
+    if !(a.crop as usize).is_multiple_of(target_config.downsample_factor()) {
         bail!(
             "--crop {} must be a multiple of the model's downsampling factor {}",
             a.crop,

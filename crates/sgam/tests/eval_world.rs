@@ -1,4 +1,5 @@
 //! `sgam eval world`: the instrument the refiner is judged by.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
 
