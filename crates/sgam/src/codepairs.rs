@@ -110,12 +110,14 @@ fn crop_pair(rec: &Recorded, codes: &[u32], crop: u32, factor: u32, rng: &mut Ch
     }
     let p = missing[rng.random_range(0..missing.len())];
     let (pu, pv) = ((p as u32) % w, (p as u32) / w);
-    let mut jitter = |c: u32| -> u32 {
+    // the crop's corner: at most crop - factor pixels before the hole pixel, inside the frame,
+    // on the latent grid
+    let mut corner = |c: u32, size: u32| -> u32 {
         let lo = c.saturating_sub(crop - factor);
         let v = rng.random_range(lo..=c);
-        v.min(w.min(h) - crop) / factor * factor
+        v.min((size - crop) / factor * factor) / factor * factor
     };
-    let (u0, v0) = (jitter(pu).min(w - crop), jitter(pv).min(h - crop));
+    let (u0, v0) = (corner(pu, w), corner(pv, h));
     let cut = |img: &Image<f32>| -> Image<f32> {
         let data =
             (v0..v0 + crop).flat_map(|v| (u0..u0 + crop).map(move |u| (u, v))).map(|(u, v)| *img.at(u, v)).collect();
@@ -126,7 +128,7 @@ fn crop_pair(rec: &Recorded, codes: &[u32], crop: u32, factor: u32, rng: &mut Ch
         height: crop,
         data: (v0..v0 + crop)
             .flat_map(|v| (u0..u0 + crop).map(move |u| (u, v)))
-            .map(|(u, v)| *rec.guidance.frame.colour.at(u, v))
+            .map(|(u, v)| rec.guidance.frame.colour.at(u, v).map(|x| (x.clamp(0.0, 1.0) * 255.0).round() / 255.0))
             .collect(),
     };
     let mask = (v0..v0 + crop)
@@ -202,7 +204,8 @@ const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
 
 /// Writes pairs atomically: magic, key JSON length + JSON, then per pair its size, intrinsics,
 /// 8-bit colour, f32 depth, mask bytes and u32 codes; a CRC-32 of everything before it last.
-/// Colour is stored as 8 bits: generated guidance colour is 8-bit already (quantised keyframes).
+/// Colour is stored as 8 bits ([`crop_pair`] rounds it so, so recorded and cached pairs are the
+/// same; the warp's bilinear colour is within half a level of it).
 pub fn write_cache(path: &std::path::Path, key: &CacheKey, pairs: &[CodePair]) -> Result<()> {
     let mut b: Vec<u8> = Vec::new();
     b.extend_from_slice(CACHE_MAGIC);
@@ -243,8 +246,9 @@ pub fn read_cache(path: &std::path::Path, key: &CacheKey) -> Result<Option<Vec<C
     }
     let mut at = 8usize;
     let mut take = |n: usize| -> Result<&[u8]> {
-        let s = body.get(at..at + n).ok_or_else(|| bad("truncated"))?;
-        at += n;
+        let end = at.checked_add(n).ok_or_else(|| bad("truncated"))?;
+        let s = body.get(at..end).ok_or_else(|| bad("truncated"))?;
+        at = end;
         Ok(s)
     };
     let u64_of = |s: &[u8]| u64::from_le_bytes(s.try_into().unwrap_or([0; 8]));
@@ -254,7 +258,8 @@ pub fn read_cache(path: &std::path::Path, key: &CacheKey) -> Result<Option<Vec<C
         return Ok(None);
     }
     let n = u64_of(take(8)?) as usize;
-    let mut pairs = Vec::with_capacity(n.min(1 << 20));
+    // a record takes at least 32 bytes: never reserve more than the file can hold
+    let mut pairs = Vec::with_capacity(n.min(body.len() / 32));
     for _ in 0..n {
         let u32_of = |s: &[u8]| u32::from_le_bytes(s.try_into().unwrap_or([0; 4]));
         let (w, h) = (u32_of(take(4)?), u32_of(take(4)?));

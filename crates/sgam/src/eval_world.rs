@@ -84,13 +84,23 @@ pub struct WorldArgs {
 impl WorldArgs {
     pub fn label(&self) -> String {
         let base = match self.refiner {
-            RefinerKind::Null => "null".to_string(),
             RefinerKind::Oracle => "oracle".to_string(),
             _ if self.no_refine => "no-refine".to_string(),
-            _ => match &self.model {
-                Some(p) => p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into()),
-                None => "model".to_string(),
-            },
+            RefinerKind::Null => "null".to_string(),
+            // the model's weights name its runs: another model never reuses them
+            _ => {
+                let bytes = match &self.model {
+                    Some(p) => std::fs::read(p).unwrap_or_default(),
+                    None => crate::generate::BUNDLED_MODEL.to_vec(),
+                };
+                let stem = match &self.model {
+                    Some(p) => {
+                        p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into())
+                    }
+                    None => "model".to_string(),
+                };
+                format!("{stem}-{:08x}", crc32fast::hash(&bytes))
+            }
         };
         let mut label = base;
         if matches!(self.refiner, RefinerKind::Auto | RefinerKind::Model) && !self.no_refine {
@@ -140,10 +150,27 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
     if dir.join("run.json").exists() && dir.join("mesh.ply").exists() {
         let run: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("run.json"))?)
             .with_context(|| format!("{}: corrupt run.json", dir.display()))?;
-        if run["steps"].as_u64() == Some(steps as u64) {
+        // reuse only a world grown the same way
+        let step = args.step.map(|s| serde_json::json!(s)).unwrap_or(serde_json::Value::Null);
+        let mut same = run["steps"].as_u64() == Some(steps as u64)
+            && run["args"]["seed_scene"].as_u64() == Some(seed_scene)
+            && run["args"]["trajectory"] == serde_json::to_value(args.trajectory)?
+            && run["args"]["step"] == step;
+        if kind != RefinerKind::Oracle {
+            same &= run["args"]["no_map"].as_bool() == Some(args.no_map)
+                && run["args"]["no_refine"].as_bool() == Some(args.no_refine);
+        }
+        if matches!(kind, RefinerKind::Auto | RefinerKind::Model) && !args.no_refine {
+            same &= run["args"]["temperature"].as_f64().map(|t| t as f32) == Some(args.temperature);
+        }
+        if same {
             return Ok(dir);
         }
-        bail!("{} holds a world of another length; remove it or choose another --out", dir.display());
+        bail!(
+            "{} holds a world grown with other options (steps, trajectory, step, temperature or ablations); \
+             remove it or choose another --out",
+            dir.display()
+        );
     }
     if dir.join("snapshot.bin").exists() {
         let mut g = GenerateArgs::for_refiner(kind, args.model.clone(), false);

@@ -68,7 +68,8 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             target_config.downsample_factor()
         );
     }
-    let mut trainer = if CodeTrainer::checkpoint_dir(&a.run).is_some() {
+    let resuming = CodeTrainer::checkpoint_dir(&a.run).is_some();
+    let mut trainer = if resuming {
         let t = CodeTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)?;
         eprintln!("resuming {} at step {}", a.run.display(), t.step);
         t
@@ -109,6 +110,12 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         if path.exists() {
             match crate::codepairs::read_cache(&path, &key)? {
                 Some(p) => return Ok(p),
+                // a run keeps its pairs: resuming on others would silently change the data
+                None if resuming => bail!(
+                    "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
+                     --steps-per-run / --seed; resume with the options it started with",
+                    path.display()
+                ),
                 None => eprintln!("{}: recorded with other options; recording again", path.display()),
             }
         }
