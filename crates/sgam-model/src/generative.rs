@@ -40,7 +40,7 @@ use crate::params::{
     from_safetensors_bytes, load_named, named_tensors, param_id_for_path, save_safetensors, write_atomic, NamedTensor,
     WeightPrecision,
 };
-use crate::quantize::to_host;
+use crate::quantize::{argmin, squared_distances, to_host};
 use crate::ModelError;
 
 /// One training example of the generative stage 2.
@@ -72,21 +72,8 @@ pub fn target_codes(
     let rows = z.permute([0, 2, 3, 1]).reshape([b * h * w, d]);
     let dist = to_host(squared_distances(rows, model.quantize.embedding.weight.val().detach()))?;
     let k = config.n_embed;
-    let idx: Vec<u32> = dist
-        .chunks_exact(k)
-        .map(|row| {
-            row.iter().enumerate().fold((0usize, f32::INFINITY), |a, (j, &v)| if v < a.1 { (j, v) } else { a }).0 as u32
-        })
-        .collect();
+    let idx: Vec<u32> = dist.chunks_exact(k).map(|row| argmin(row) as u32).collect();
     Ok(idx.chunks(h * w).map(<[u32]>::to_vec).collect())
-}
-
-/// `||z_i - e_k||^2` for rows `z` `[N, D]` and codebook `e` `[K, D]`: `[N, K]`.
-pub fn squared_distances(z: Tensor<2>, e: Tensor<2>) -> Tensor<2> {
-    let [k, _] = e.dims();
-    let zz = z.clone().square().sum_dim(1);
-    let ee = e.clone().square().sum_dim(1).reshape([1, k]);
-    zz + ee - z.matmul(e.transpose()).mul_scalar(2.0)
 }
 
 /// The learned code temperature, stored as `log tau`.

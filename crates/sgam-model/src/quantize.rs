@@ -42,18 +42,26 @@ pub struct Quantized {
     pub features: Vec<f32>,
 }
 
+/// `||z_i - e_k||^2` for rows `z` `[N, D]` and codebook `e` `[K, D]`: `[N, K]` (differentiable).
+pub fn squared_distances(z: Tensor<2>, e: Tensor<2>) -> Tensor<2> {
+    let [k, _] = e.dims();
+    let zz = z.clone().square().sum_dim(1); // [N, 1]
+    let ee = e.clone().square().sum_dim(1).reshape([1, k]); // [1, K]
+    zz + ee - z.matmul(e.transpose()).mul_scalar(2.0)
+}
+
 /// Squared distances `[N, K]` (row-major, host) between rows of `z` `[N, D]` and the codebook.
 fn distances(z: Tensor<2>, codebook: Tensor<2>) -> Result<Vec<f32>, ModelError> {
     let [n, _] = z.dims();
     let [k, _] = codebook.dims();
-    let z = z.detach();
-    let e = codebook.detach();
-    let zz = z.clone().square().sum_dim(1); // [N, 1]
-    let ee = e.clone().square().sum_dim(1).reshape([1, k]); // [1, K]
-    let d = zz + ee - z.matmul(e.transpose()).mul_scalar(2.0);
-    let v = to_host(d)?;
+    let v = to_host(squared_distances(z.detach(), codebook.detach()))?;
     debug_assert_eq!(v.len(), n * k);
     Ok(v)
+}
+
+/// Index of the smallest value of `row` (the first one on ties; 0 for an empty row).
+pub(crate) fn argmin(row: &[f32]) -> usize {
+    row.iter().enumerate().fold((0usize, f32::INFINITY), |best, (j, &d)| if d < best.1 { (j, d) } else { best }).0
 }
 
 pub(crate) fn to_host<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>, ModelError> {
@@ -73,16 +81,7 @@ pub fn select_codes(
     let mut out = Vec::with_capacity(n);
     for i in 0..n {
         let row = &dist[i * k..(i + 1) * k];
-        let argmin = row.iter().enumerate().fold(
-            (0usize, f32::INFINITY),
-            |best, (j, &d)| {
-                if d < best.1 {
-                    (j, d)
-                } else {
-                    best
-                }
-            },
-        );
+        let nearest = argmin(row);
         let sample = missing.is_some_and(|m| m.get(i).copied().unwrap_or(false));
         let choice = match sampling {
             Sampling::Temperature { temperature, top_k } if sample && temperature > 0.0 && top_k > 1 => {
@@ -106,7 +105,7 @@ pub fn select_codes(
                 }
                 pick
             }
-            _ => argmin.0,
+            _ => nearest,
         };
         out.push(choice as u32);
     }

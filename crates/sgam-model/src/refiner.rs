@@ -13,11 +13,10 @@ use rand_chacha::ChaCha8Rng;
 use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
 use crate::config::ModelConfig;
-use crate::generative::squared_distances;
 use crate::model::VqModel;
 use crate::packing::{missing_cells, pack_input, unpack};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, WeightPrecision};
-use crate::quantize::{select_codes, to_host, Sampling};
+use crate::quantize::{select_codes, squared_distances, to_host, Sampling};
 use crate::ModelError;
 
 /// Safetensors metadata key holding the [`ModelConfig`] JSON.

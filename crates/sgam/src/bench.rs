@@ -7,7 +7,7 @@ use clap::{Args, ValueEnum};
 use serde_json::json;
 use sgam_core::{trajectory, Camera, RgbdFrame};
 use sgam_map::{warp_colour, SourceView, TsdfConfig, TsdfMap, WarpConfig};
-use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
+use sgam_synth::{RenderConfig, Renderer, Scene, SceneConfig};
 
 /// What to time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -57,12 +57,7 @@ pub struct BenchArgs {
 pub fn synthetic_sequence(res: u32, n: usize) -> (Renderer, Vec<(Camera, RgbdFrame)>) {
     let scene = Scene::generate(1, &SceneConfig::default());
     let renderer = Renderer::new(&scene);
-    let seed = blender_camera(
-        sgam_core::Vec3::new(-20.0, -20.0, sgam_synth::CAMERA_HEIGHT_M),
-        sgam_synth::CAMERA_PITCH_RAD,
-        0.0,
-        dataset_intrinsics(res),
-    );
+    let seed = crate::generate::synthetic_seed_camera(res);
     let side = (n as f32).sqrt().ceil() as usize + 1;
     let cells = trajectory::zigzag_cells(side, side);
     let poses = trajectory::grid_poses(&seed.world_from_camera, &cells, 0.408);

@@ -118,28 +118,18 @@ fn crop_pair(rec: &Recorded, codes: &[u32], crop: u32, factor: u32, rng: &mut Ch
         v.min((size - crop) / factor * factor) / factor * factor
     };
     let (u0, v0) = (corner(pu, w), corner(pv, h));
-    let cut = |img: &Image<f32>| -> Image<f32> {
-        let data =
-            (v0..v0 + crop).flat_map(|v| (u0..u0 + crop).map(move |u| (u, v))).map(|(u, v)| *img.at(u, v)).collect();
-        Image { width: crop, height: crop, data }
-    };
-    let colour = Image {
-        width: crop,
-        height: crop,
-        data: (v0..v0 + crop)
-            .flat_map(|v| (u0..u0 + crop).map(move |u| (u, v)))
-            .map(|(u, v)| rec.guidance.frame.colour.at(u, v).map(|x| (x.clamp(0.0, 1.0) * 255.0).round() / 255.0))
-            .collect(),
-    };
-    let mask = (v0..v0 + crop)
-        .flat_map(|v| (u0..u0 + crop).map(move |u| (v * w + u) as usize))
-        .map(|i| rec.guidance.missing[i])
-        .collect();
+    // the window's pixels, row-major in the frame
+    let window: Vec<usize> = (v0..v0 + crop).flat_map(|v| (u0..u0 + crop).map(move |u| (v * w + u) as usize)).collect();
+    let frame = &rec.guidance.frame;
+    let colour = window.iter().map(|&i| frame.colour.data[i].map(|x| (x.clamp(0.0, 1.0) * 255.0).round() / 255.0));
+    let colour = Image { width: crop, height: crop, data: colour.collect() };
+    let depth_m = Image { width: crop, height: crop, data: window.iter().map(|&i| frame.depth_m.data[i]).collect() };
+    let mask = window.iter().map(|&i| rec.guidance.missing[i]).collect();
     let (cw, c0, r0, cc) =
         ((w / factor) as usize, (u0 / factor) as usize, (v0 / factor) as usize, (crop / factor) as usize);
     let crop_codes = (r0..r0 + cc).flat_map(|r| (c0..c0 + cc).map(move |c| r * cw + c)).map(|i| codes[i]).collect();
     Some(CodePair {
-        input: RgbdFrame { colour, depth_m: cut(&rec.guidance.frame.depth_m) },
+        input: RgbdFrame { colour, depth_m },
         missing: mask,
         intrinsics: Intrinsics { width: crop, height: crop, cx: k.cx - u0 as f32, cy: k.cy - v0 as f32, ..k },
         codes: crop_codes,

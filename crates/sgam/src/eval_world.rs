@@ -143,6 +143,21 @@ impl WorldArgs {
     }
 }
 
+/// `sgam generate`'s arguments for one of this evaluation's runs: the refiner of `kind` with
+/// the evaluated options (the oracle takes none), no fly-through.
+fn generate_args(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: usize) -> GenerateArgs {
+    let mut g = GenerateArgs::for_refiner(kind, args.model.clone(), false);
+    g.seed_scene = seed_scene;
+    g.steps = steps;
+    g.no_video = true;
+    if kind != RefinerKind::Oracle {
+        g.temperature = args.temperature;
+        g.no_map = args.no_map;
+        g.no_refine = args.no_refine;
+    }
+    g
+}
+
 /// Grows (or reuses) one world; returns its folder.
 fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root: &Path) -> Result<PathBuf> {
     let (_, steps) = args.seeds_steps();
@@ -179,18 +194,10 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
         crate::generate::run(g)?;
         return Ok(dir);
     }
-    let mut g = GenerateArgs::for_refiner(kind, args.model.clone(), false);
+    let mut g = generate_args(args, kind, seed_scene, steps);
     g.out = Some(dir.clone());
-    g.seed_scene = seed_scene;
-    g.steps = steps;
     g.trajectory = args.trajectory;
     g.step = args.step;
-    g.no_video = true;
-    if kind != RefinerKind::Oracle {
-        g.temperature = args.temperature;
-        g.no_map = args.no_map;
-        g.no_refine = args.no_refine;
-    }
     crate::generate::run(g)?;
     Ok(dir)
 }
@@ -216,34 +223,15 @@ fn loop_consistency(
                 .with_context(|| format!("{}: cannot clear an unfinished loop run", dir.display()))?;
         }
         std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-        let seed = sgam_synth::blender_camera(
-            Vec3::new(-20.0, -20.0, sgam_synth::CAMERA_HEIGHT_M),
-            sgam_synth::CAMERA_PITCH_RAD,
-            0.0,
-            sgam_synth::dataset_intrinsics(256),
-        );
+        let seed = crate::generate::synthetic_seed_camera(256);
         let mut poses = sgam_core::trajectory::circle_poses(&seed.world_from_camera, LOOP_STEPS, 3.0);
         poses.push(seed.world_from_camera);
-        let text: String = poses
-            .iter()
-            .map(|p| {
-                let r = p.to_rows();
-                let row: Vec<String> = r[..3].iter().flat_map(|row| row.iter().map(|x| format!("{x:.9}"))).collect();
-                row.join(" ") + "\n"
-            })
-            .collect();
         let traj = root.join(format!("seed-{seed_scene}")).join("loop-kitti.txt");
-        sgam_io::write_atomic(&traj, |w| std::io::Write::write_all(w, text.as_bytes()))?;
-        let mut g = GenerateArgs::for_refiner(kind, args.model.clone(), false);
+        sgam_io::write_kitti_trajectory(&traj, &poses)?;
+        let mut g = generate_args(args, kind, seed_scene, LOOP_STEPS);
         g.out = Some(dir.join("run"));
-        g.seed_scene = seed_scene;
-        g.steps = LOOP_STEPS;
         g.trajectory = TrajectoryKind::File;
         g.trajectory_file = Some(traj);
-        g.no_video = true;
-        g.temperature = args.temperature;
-        g.no_map = args.no_map;
-        g.no_refine = args.no_refine;
         crate::generate::run(g)?;
         for name in ["run.json", "rgb"] {
             std::fs::rename(dir.join("run").join(name), dir.join(name))
@@ -262,13 +250,8 @@ fn loop_consistency(
 /// The seed frame's footprint on the ground plane: its four corner rays cut with the plane
 /// z = `sgam_synth::GROUND_Z_M`.
 fn seed_footprint(res: u32) -> Vec<Vec2> {
-    let k = sgam_synth::dataset_intrinsics(res);
-    let camera = sgam_synth::blender_camera(
-        Vec3::new(-20.0, -20.0, sgam_synth::CAMERA_HEIGHT_M),
-        sgam_synth::CAMERA_PITCH_RAD,
-        0.0,
-        k,
-    );
+    let camera = crate::generate::synthetic_seed_camera(res);
+    let k = camera.intrinsics;
     let (w, h) = (k.width as f32, k.height as f32);
     let corners = [(0.0, 0.0), (w, 0.0), (w, h), (0.0, h)];
     let origin = camera.world_from_camera.transform_point(Vec3::ZERO);

@@ -251,12 +251,7 @@ fn load_seed(args: &GenerateArgs) -> Result<Seed> {
     }
     let scene = Scene::generate(args.seed_scene, &SceneConfig::default());
     let renderer = Renderer::new(&scene);
-    let camera = blender_camera(
-        Vec3::new(-20.0, -20.0, sgam_synth::CAMERA_HEIGHT_M),
-        sgam_synth::CAMERA_PITCH_RAD,
-        0.0,
-        dataset_intrinsics(args.res),
-    );
+    let camera = synthetic_seed_camera(args.res);
     let frame = renderer.render(&camera, &RenderConfig::default()).frame;
     Ok(Seed {
         camera,
@@ -265,6 +260,17 @@ fn load_seed(args: &GenerateArgs) -> Result<Seed> {
         preset: CLEVR,
         name: format!("synthetic scene {}", args.seed_scene),
     })
+}
+
+/// The camera of synthetic seeds: the dataset's first grid camera (-20, -20), looking down at
+/// the dataset's pitch, `res x res` pixels. Evaluation derives the seed's footprint from it.
+pub fn synthetic_seed_camera(res: u32) -> Camera {
+    blender_camera(
+        Vec3::new(-20.0, -20.0, sgam_synth::CAMERA_HEIGHT_M),
+        sgam_synth::CAMERA_PITCH_RAD,
+        0.0,
+        dataset_intrinsics(res),
+    )
 }
 
 /// Side of the square grid of the grid trajectories (zig-zag, boustrophedon, greedy): `--grid`,
