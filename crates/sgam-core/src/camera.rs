@@ -186,8 +186,17 @@ mod tests {
         let k = Intrinsics::from_fov_x(256, 256, 0.69111);
         let z = k.ray_length_to_planar(Vec2::new(k.cx, k.cy), 10.0);
         assert!((z - 10.0).abs() < 1e-6);
-        let uv = Vec2::new(0.0, 0.0);
-        let r = k.unproject(uv, 7.0).length();
-        assert!((k.ray_length_to_planar(uv, r) - 7.0).abs() < 1e-4);
+        // Corner values worked by hand on a camera with fx != fy and cx != cy, so a swapped or
+        // wrong principal point or focal length shows: z = r / sqrt(1 + (du / fx)^2 + (dv / fy)^2).
+        let k = Intrinsics::try_new(640, 480, 500.0, 400.0, 300.0, 250.0).unwrap();
+        // (0, 0): (300 / 500)^2 + (250 / 400)^2 = 0.36 + 0.390625
+        let z = k.ray_length_to_planar(Vec2::new(0.0, 0.0), 7.0);
+        assert!((z as f64 - 7.0 / 1.750625f64.sqrt()).abs() < 1e-5, "z {z}");
+        // (639, 479): (339 / 500)^2 + (229 / 400)^2 = 0.459684 + 0.32775625
+        let z = k.ray_length_to_planar(Vec2::new(639.0, 479.0), 7.0);
+        assert!((z as f64 - 7.0 / 1.78744025f64.sqrt()).abs() < 1e-5, "z {z}");
+        // The planar depth unprojects to a point whose distance from the camera is the ray length.
+        let r = k.unproject(Vec2::new(639.0, 479.0), z).length();
+        assert!((r - 7.0).abs() < 1e-5, "ray length {r}");
     }
 }

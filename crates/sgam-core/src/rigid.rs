@@ -184,10 +184,24 @@ mod tests {
 
     #[test]
     fn rows_round_trip_and_rigidity_check() {
+        // Row-major layout against a matrix written by hand: a quarter turn about z maps x to y.
+        let quarter = Rigid3::new(Mat3::from_rotation_z(std::f32::consts::FRAC_PI_2), Vec3::new(1.0, 2.0, 3.0));
+        let expect = [[0.0, -1.0, 0.0, 1.0], [1.0, 0.0, 0.0, 2.0], [0.0, 0.0, 1.0, 3.0], [0.0, 0.0, 0.0, 1.0]];
+        let rows = quarter.to_rows();
+        for r in 0..4 {
+            for c in 0..4 {
+                assert!((rows[r][c] - expect[r][c]).abs() < 1e-7, "rows[{r}][{c}] = {}", rows[r][c]);
+            }
+        }
+        assert_eq!(Rigid3::try_from_rows(expect).unwrap().transform_point(Vec3::X), Vec3::new(1.0, 3.0, 3.0));
+        // Rotation and translation both survive the round trip, over random cases (f32 -> f64 -> f32
+        // is exact, so they compare equal).
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
         let a = random_rigid(&mut rng);
-        let b = Rigid3::try_from_rows(a.to_rows()).unwrap();
-        assert!((a.translation - b.translation).length() < 1e-5);
+        for _ in 0..100 {
+            let x = random_rigid(&mut rng);
+            assert_eq!(Rigid3::try_from_rows(x.to_rows()).unwrap(), x);
+        }
         let mut rows = a.to_rows();
         rows[0][0] *= 2.0;
         assert!(matches!(Rigid3::try_from_rows(rows), Err(CoreError::NotRigid(_))));

@@ -137,11 +137,32 @@ mod tests {
     #[test]
     fn circle_closes_and_spiral_steps_evenly() {
         let seed = Rigid3::look_at(Vec3::ZERO, Vec3::new(1.0, 0.0, -3.0), Vec3::Z).unwrap();
-        let c = circle_poses(&seed, 40, 5.0);
+        // The seed looks along +x, so the circle turns left about the centre (0, 5, 0): every
+        // pose is 5 m from it, consecutive poses are one chord 2 r sin(pi / n) apart, the last
+        // pose is one chord short of the seed (the turn closes), a quarter turn is at (5, 5, 0),
+        // and each camera's horizontal view direction is the path's tangent (cos a, sin a, 0).
+        let (n, radius) = (40usize, 5.0f32);
+        let c = circle_poses(&seed, n, radius);
+        assert_eq!(c.len(), n);
         assert!((c[0].translation - seed.translation).length() < 1e-5);
-        for p in &c {
+        let centre = Vec3::new(0.0, radius, 0.0);
+        let chord = 2.0 * radius * (std::f32::consts::PI / n as f32).sin();
+        for (k, p) in c.iter().enumerate() {
             assert!(p.translation.z.abs() < 1e-5);
+            let r = (p.translation - centre).length();
+            assert!((r - radius).abs() < 1e-4, "pose {k}: radius {r}");
+            let next = c[(k + 1) % n].translation;
+            let step = (next - p.translation).length();
+            assert!((step - chord).abs() < 1e-4, "pose {k} -> {}: step {step}, chord {chord}", (k + 1) % n);
+            let a = std::f32::consts::TAU * k as f32 / n as f32;
+            let fwd = horizontal_forward(p);
+            assert!((fwd - Vec3::new(a.cos(), a.sin(), 0.0)).length() < 1e-4, "pose {k}: forward {fwd}");
+            // The tilt below the horizon is the seed's (the turn is about world up only).
+            let tilt = p.transform_vector(Vec3::Z).z;
+            assert!((tilt - seed.transform_vector(Vec3::Z).z).abs() < 1e-5);
         }
+        assert!((c[n / 4].translation - Vec3::new(radius, radius, 0.0)).length() < 1e-4, "{}", c[n / 4].translation);
+        assert!((c[n / 2].translation - Vec3::new(0.0, 2.0 * radius, 0.0)).length() < 1e-4);
         let s = spiral_poses(&seed, 200, 0.4, 2.0);
         for w in s.windows(2).skip(5) {
             let d = (w[1].translation - w[0].translation).length();

@@ -227,8 +227,9 @@ fn parse_ply_header(path: &Path, bytes: &[u8]) -> Result<(PlyFormat, Vec<Element
 /// Reads a PLY mesh (ASCII, binary little- or big-endian): vertex `x y z` (any numeric type),
 /// optional colour `red green blue` (or `r g b`; 8-bit, 16-bit or float in `[0, 1]`), faces from
 /// `vertex_indices` / `vertex_index` (polygons are triangulated as fans). Other properties and
-/// elements (normals, alpha, edges, ...) are skipped. Indices past the vertex count, truncated
-/// bodies and malformed headers are errors.
+/// elements (normals, alpha, edges, ...) are skipped. Indices past the vertex count, non-finite
+/// positions (also f64 values beyond the f32 range), truncated bodies and malformed headers are
+/// errors.
 pub fn read_ply(path: &Path) -> Result<TriMesh, IoError> {
     let bytes = std::fs::read(path).map_err(|e| IoError::io(path, e))?;
     let (format, elements, body_start) = parse_ply_header(path, &bytes)?;
@@ -298,7 +299,14 @@ pub fn read_ply(path: &Path) -> Result<TriMesh, IoError> {
             }
             if is_vertex {
                 let g = |i: Option<usize>| i.map(|i| values[i]).unwrap_or(0.0);
-                mesh.positions.push(Vec3::new(g(xi) as f32, g(yi) as f32, g(zi) as f32));
+                let p = Vec3::new(g(xi) as f32, g(yi) as f32, g(zi) as f32);
+                if !p.is_finite() {
+                    return Err(IoError::invalid(
+                        path,
+                        format!("PLY vertex {} has a non-finite position {p}", mesh.positions.len()),
+                    ));
+                }
+                mesh.positions.push(p);
                 if has_colour {
                     let c = |i: Option<usize>| i.map(|i| (values[i] * scales[i]) as f32).unwrap_or(0.0);
                     mesh.colours.push([c(ri), c(gi), c(bi)]);

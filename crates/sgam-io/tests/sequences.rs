@@ -118,10 +118,19 @@ fn clevr_authors_layout_skips_frames_without_images_and_converts_ray_length() {
     let frame = seq.read_frame(0).unwrap();
     assert!(max_abs_diff(&frame.depth_m.data, &truth.data) < 1e-5);
     assert_eq!(frame.colour, test_frame(8, 6, 0).colour);
-    // Every planar depth unprojects to the same 3-D point the ray length describes.
-    let uv = Vec2::new(5.0, 4.0);
-    let p = k.unproject(uv, *frame.depth_m.at(5, 4));
-    assert!((p.z - *truth.at(5, 4)).abs() < 1e-5);
+    // Every valid planar depth unprojects to a point whose distance from the camera is the ray
+    // length stored in the file (f32 rounding of metre-scale values: 1e-5 m).
+    let ray = read_npy_f32(&dir.path().join("dm_00000_00_00.npy")).unwrap();
+    for v in 0..6 {
+        for u in 0..8 {
+            let r = *ray.at(u, v);
+            if !r.is_finite() || *truth.at(u, v) <= 0.0 {
+                continue;
+            }
+            let p = k.unproject(Vec2::new(u as f32, v as f32), *frame.depth_m.at(u, v));
+            assert!((p.length() - r).abs() < 1e-5, "({u}, {v}): |p| {} vs ray length {r}", p.length());
+        }
+    }
 }
 
 #[test]

@@ -1,5 +1,14 @@
 use crate::MapError;
 
+/// Smallest voxel size [`TsdfConfig::validate`] accepts, metres (1 mm).
+pub const MIN_VOXEL_M: f32 = 1e-3;
+/// Largest voxel size [`TsdfConfig::validate`] accepts, metres.
+pub const MAX_VOXEL_M: f32 = 10.0;
+/// Largest truncation [`TsdfConfig::validate`] accepts, voxels.
+pub const MAX_TRUNC_VOXELS: f32 = 64.0;
+/// Largest depth cut [`TsdfConfig::validate`] accepts, metres.
+pub const MAX_DEPTH_M: f32 = 10_000.0;
+
 /// Parameters of a [`crate::TsdfMap`]. Defaults follow the SGAM authors' CLEVR-Infinite setup.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TsdfConfig {
@@ -36,21 +45,30 @@ impl TsdfConfig {
         self.voxel_size_m * crate::block::BLOCK_SIZE as f32
     }
 
-    /// Checks ranges: positive finite voxel size and truncation, `0 <= depth_min < depth_max`,
-    /// positive cap.
+    /// Checks ranges: voxel size in [`MIN_VOXEL_M`]..=[`MAX_VOXEL_M`], truncation in
+    /// `(0, MAX_TRUNC_VOXELS]` voxels, `0 <= depth_min < depth_max <= MAX_DEPTH_M`, cap `>= 1`.
+    /// The lower voxel bound keeps memory within a machine: below it every pixel of every frame
+    /// allocates its own blocks. Errors name the field and the accepted range.
     pub fn validate(&self) -> Result<(), MapError> {
         let bad = |m: String| Err(MapError::InvalidConfig(m));
-        if !(self.voxel_size_m.is_finite() && self.voxel_size_m > 0.0) {
-            return bad(format!("voxel_size_m = {} must be positive", self.voxel_size_m));
+        if !(self.voxel_size_m.is_finite() && (MIN_VOXEL_M..=MAX_VOXEL_M).contains(&self.voxel_size_m)) {
+            return bad(format!(
+                "voxel_size_m = {} is out of range {MIN_VOXEL_M}..={MAX_VOXEL_M} m",
+                self.voxel_size_m
+            ));
         }
-        if !(self.trunc_voxels.is_finite() && self.trunc_voxels > 0.0) {
-            return bad(format!("trunc_voxels = {} must be positive", self.trunc_voxels));
+        if !(self.trunc_voxels.is_finite() && self.trunc_voxels > 0.0 && self.trunc_voxels <= MAX_TRUNC_VOXELS) {
+            return bad(format!("trunc_voxels = {} is out of range (0, {MAX_TRUNC_VOXELS}]", self.trunc_voxels));
         }
         if !(self.depth_min_m.is_finite() && self.depth_max_m.is_finite())
             || self.depth_min_m < 0.0
             || self.depth_min_m >= self.depth_max_m
+            || self.depth_max_m > MAX_DEPTH_M
         {
-            return bad(format!("depth range {}..{} m is empty or invalid", self.depth_min_m, self.depth_max_m));
+            return bad(format!(
+                "depth range {}..{} m is empty or invalid (0 <= min < max <= {MAX_DEPTH_M})",
+                self.depth_min_m, self.depth_max_m
+            ));
         }
         if let Some(cap) = self.weight_cap {
             if !(cap.is_finite() && cap >= 1.0) {

@@ -34,7 +34,7 @@ mod render;
 mod warp;
 
 pub use block::{Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS};
-pub use config::TsdfConfig;
+pub use config::{TsdfConfig, MAX_DEPTH_M, MAX_TRUNC_VOXELS, MAX_VOXEL_M, MIN_VOXEL_M};
 pub use error::MapError;
 pub use map::{IntegrateStats, TsdfMap};
 pub use render::Rendered;

@@ -136,11 +136,34 @@ mod tests {
         assert_eq!(t.cases[0b0000_1111].len(), 2);
     }
 
+    /// The two cube faces `(axis, side)` that contain edge `e`.
+    fn faces_of_edge(e: usize) -> Vec<(usize, usize)> {
+        let s = edge_start(e);
+        (0..3).filter(|&a| a != edge_axis(e)).map(|a| (a, s >> a & 1)).collect()
+    }
+
+    /// The directed polygon edges of `case` that no triangle traverses the other way: the
+    /// surface's border inside the cell, which must run along the cube's faces.
+    fn border(case: usize) -> Vec<(u8, u8)> {
+        let mut directed = std::collections::HashSet::new();
+        for tri in &table().cases[case] {
+            for k in 0..3 {
+                directed.insert((tri[k], tri[(k + 1) % 3]));
+            }
+        }
+        let mut out: Vec<(u8, u8)> = directed.iter().copied().filter(|&(a, b)| !directed.contains(&(b, a))).collect();
+        out.sort_unstable();
+        out
+    }
+
     #[test]
     fn every_case_is_a_closed_surface_inside_the_cube_boundary() {
-        // Each crossing edge is used by the polygons; each non-crossing edge never; every
-        // interior polygon edge (between two crossing-edge vertices that are not on one face
-        // segment) is shared by exactly two triangles with opposite directions.
+        // Each crossing edge is used by the polygons; each non-crossing edge never; no directed
+        // edge twice; every polygon edge either is shared with the opposite direction by another
+        // triangle (interior) or lies on a cube face (border). On each face the border has one
+        // segment per pair of crossing edges (2 crossings: 1 segment, 4: 2), so the surface
+        // leaves the cube only through faces, where the neighbouring cell continues it (checked
+        // in `neighbouring_cells_agree_on_their_shared_face`).
         let t = table();
         for case in 0..256usize {
             let inside = |c: usize| case >> c & 1 == 1;
@@ -152,13 +175,65 @@ mod tests {
                     *directed.entry((tri[k], tri[(k + 1) % 3])).or_default() += 1;
                 }
             }
-            for e in 0..12 {
+            let crossing = |e: usize| {
                 let s = edge_start(e);
-                let crossing = inside(s) != inside(s | 1 << edge_axis(e));
-                assert_eq!(used[e], crossing, "case {case} edge {e}");
+                inside(s) != inside(s | 1 << edge_axis(e))
+            };
+            for e in 0..12 {
+                assert_eq!(used[e], crossing(e), "case {case} edge {e}");
             }
             for (&(a, b), &n) in &directed {
                 assert_eq!(n, 1, "case {case}: directed edge {a}->{b} used {n} times");
+            }
+            let border = border(case);
+            for &(a, b) in &border {
+                let (fa, fb) = (faces_of_edge(a as usize), faces_of_edge(b as usize));
+                assert!(fa.iter().any(|f| fb.contains(f)), "case {case}: border {a}->{b} crosses the cube's inside");
+            }
+            for axis in 0..3 {
+                for side in 0..2 {
+                    let on_face = |e: u8| faces_of_edge(e as usize).contains(&(axis, side));
+                    let n_cross = (0..12).filter(|&e| crossing(e) && on_face(e as u8)).count();
+                    let n_border = border.iter().filter(|&&(a, b)| on_face(a) && on_face(b)).count();
+                    assert_eq!(n_border, n_cross / 2, "case {case} face ({axis}, {side})");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn neighbouring_cells_agree_on_their_shared_face() {
+        // Watertightness across cells: for every pair of cases whose corner signs agree on a
+        // shared face (cell A's side 1 = cell B's side 0 along `axis`), A's border segments on
+        // that face are B's, traversed the other way (consistent orientation across the face).
+        let mirror = |e: u8, axis: usize| {
+            // The edge of cell B at the same place as edge `e` of cell A on A's side-1 face.
+            let s = edge_start(e as usize) & !(1 << axis);
+            (0..12u8)
+                .find(|&f| edge_axis(f as usize) == edge_axis(e as usize) && edge_start(f as usize) == s)
+                .unwrap_or(u8::MAX)
+        };
+        let borders: Vec<Vec<(u8, u8)>> = (0..256).map(border).collect();
+        for axis in 0..3 {
+            let face_corners = |side: usize| (0..8usize).filter(move |c| c >> axis & 1 == side);
+            for a in 0..256usize {
+                for b in 0..256usize {
+                    let agree = face_corners(1).all(|c| (a >> c & 1) == (b >> (c & !(1 << axis)) & 1));
+                    if !agree {
+                        continue;
+                    }
+                    let on = |e: u8, side: usize| faces_of_edge(e as usize).contains(&(axis, side));
+                    let mut from_a: Vec<(u8, u8)> = borders[a]
+                        .iter()
+                        .filter(|&&(x, y)| on(x, 1) && on(y, 1))
+                        .map(|&(x, y)| (mirror(y, axis), mirror(x, axis)))
+                        .collect();
+                    let mut from_b: Vec<(u8, u8)> =
+                        borders[b].iter().copied().filter(|&(x, y)| on(x, 0) && on(y, 0)).collect();
+                    from_a.sort_unstable();
+                    from_b.sort_unstable();
+                    assert_eq!(from_a, from_b, "cases {a} and {b} along axis {axis}");
+                }
             }
         }
     }
@@ -171,5 +246,38 @@ mod tests {
         let p = tri.map(|e| edge_mid(e as usize));
         let n = (p[1] - p[0]).cross(p[2] - p[0]);
         assert!(n.dot(Vec3::ONE) > 0.0);
+        // Every triangle of every case: each vertex sits on an edge from an inside corner to an
+        // outside one, and the surface separates them, so the triangle's normal points along
+        // those edges' inside-to-outside directions (summed over its three vertices). Triangles
+        // lying in a cube face (fans of 6- and 7-gons whose three consecutive vertices share an
+        // ambiguous face: 18 of the table's 820) have all three edges in that face, so the sum
+        // is perpendicular to their normal and says nothing; they are counted, not judged.
+        let mut in_face = 0;
+        for case in 0..256usize {
+            let inside = |c: usize| case >> c & 1 == 1;
+            for tri in &t.cases[case] {
+                let p = tri.map(|e| edge_mid(e as usize));
+                let n = (p[1] - p[0]).cross(p[2] - p[0]);
+                assert!(n.length() > 1e-6, "case {case}: degenerate triangle {tri:?}");
+                if (0..3).any(|a| p[0][a] == p[1][a] && p[1][a] == p[2][a] && p[0][a] != 0.5) {
+                    in_face += 1;
+                    continue;
+                }
+                let outward: Vec3 = tri
+                    .iter()
+                    .map(|&e| {
+                        let s = edge_start(e as usize);
+                        let d = corner_pos(s | 1 << edge_axis(e as usize)) - corner_pos(s);
+                        if inside(s) {
+                            d
+                        } else {
+                            -d
+                        }
+                    })
+                    .sum();
+                assert!(n.dot(outward) > 0.0, "case {case}: triangle {tri:?} faces inwards");
+            }
+        }
+        assert!(in_face <= 18, "{in_face} triangles lie in a cube face (measured 18; fewer is better)");
     }
 }

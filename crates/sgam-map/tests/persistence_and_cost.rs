@@ -149,7 +149,31 @@ fn bad_frames_and_poses_do_not_panic() {
     assert_eq!(map.integrate(&frame, &bad).voxels_updated, 0);
     assert!(!map.render(&bad).covered.iter().any(|c| *c));
     assert!(!map.ray_cast(&bad).covered.iter().any(|c| *c));
-    // A frame smaller than the intrinsics claim.
-    let small = sgam_core::RgbdFrame::empty(8, 6);
-    map.integrate(&small, &cam);
+    // A frame smaller than the intrinsics claim (8 x 6 against 32 x 24) is read at its own size:
+    // it integrates exactly like the full frame with every pixel outside its 8 x 6 corner made
+    // invalid (same stats, bit-identical blocks).
+    let frame = render_analytic(&[Shape::Plane { normal: Vec3::Z, offset: 0.0 }], &cam);
+    let (mut crop, mut masked) = (sgam_core::RgbdFrame::empty(8, 6), frame.clone());
+    for v in 0..24 {
+        for u in 0..32 {
+            if u < 8 && v < 6 {
+                *crop.depth_m.at_mut(u, v) = *frame.depth_m.at(u, v);
+                *crop.colour.at_mut(u, v) = *frame.colour.at(u, v);
+            } else {
+                *masked.depth_m.at_mut(u, v) = 0.0;
+            }
+        }
+    }
+    let (mut from_crop, mut from_masked) = (TsdfMap::new(cfg), TsdfMap::new(cfg));
+    let stats = from_crop.integrate(&crop, &cam);
+    assert_eq!(stats, from_masked.integrate(&masked, &cam));
+    assert_eq!(stats.pixels_used, 8 * 6);
+    assert!(stats.voxels_updated > 0 && stats.blocks_updated > 0, "{stats:?}");
+    assert_eq!(from_crop.block_keys(), from_masked.block_keys());
+    for k in from_crop.block_keys() {
+        assert_eq!(from_crop.block(k), from_masked.block(k));
+    }
+    // An all-invalid frame of another size integrates nothing.
+    let stats = map.integrate(&sgam_core::RgbdFrame::empty(8, 6), &cam);
+    assert_eq!(stats, sgam_map::IntegrateStats::default());
 }

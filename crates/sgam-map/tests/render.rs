@@ -28,8 +28,9 @@ fn fused(voxel: f32) -> TsdfMap {
     map
 }
 
-/// Compares covered pixels with the analytic depth away from depth edges; returns
-/// (fraction of analytic pixels covered, 95th-percentile |error|, fraction within tol).
+/// Compares covered pixels with the analytic depth away from depth edges and beyond the map's
+/// `depth_min_m` (0.1 m: nearer triangles are not drawn); returns (fraction of those analytic
+/// pixels covered, 95th-percentile |error|, fraction within tol).
 fn compare(depth: &sgam_core::Image<f32>, covered: &[bool], cam: &Camera, tol: f32) -> (f32, f32, f32) {
     let truth = render_analytic(&scene(), cam);
     let (w, h) = (truth.width() as i32, truth.height() as i32);
@@ -43,7 +44,7 @@ fn compare(depth: &sgam_core::Image<f32>, covered: &[bool], cam: &Camera, tol: f
             let edge = [(1, 0), (-1, 0), (0, 1), (0, -1)]
                 .iter()
                 .any(|(du, dv)| (truth.depth_m.at((u + du) as u32, (v + dv) as u32) - d).abs() > 0.05);
-            if edge || d <= 0.0 {
+            if edge || d <= 0.1 {
                 continue;
             }
             eligible += 1;
@@ -70,6 +71,8 @@ fn rasterized_depth_matches_analytic_depth() {
     let (coverage, p95, within) = compare(&r.depth_m, &r.covered, &cam, 0.5 * voxel);
     assert!(coverage > 0.97, "coverage {coverage}");
     assert!(within > 0.99, "only {within} within half a voxel (p95 {p95})");
+    // Measured p95: 4.2 mm = 0.21 voxel; the bound leaves 40 % margin.
+    assert!(p95 < 0.3 * voxel, "p95 {p95} m");
     assert!(r.blocks_visited > 0);
     // Uncovered pixels have depth 0; covered ones positive.
     assert!(r.covered.iter().zip(&r.depth_m.data).all(|(c, d)| *c == (*d > 0.0)));
@@ -107,6 +110,8 @@ fn ray_cast_matches_analytic_depth_and_the_rasterizer() {
     let (coverage, p95, within) = compare(&rc.depth_m, &rc.covered, &cam, 0.5 * voxel);
     assert!(coverage > 0.97, "coverage {coverage}");
     assert!(within > 0.99, "only {within} within half a voxel (p95 {p95})");
+    // Measured p95: 3.4 mm = 0.17 voxel; the bound leaves 75 % margin.
+    assert!(p95 < 0.3 * voxel, "p95 {p95} m");
     let r = map.render(&cam);
     let both: Vec<bool> = rc.covered.iter().zip(&r.covered).map(|(a, b)| *a && *b).collect();
     let mut diffs: Vec<f32> =
@@ -141,24 +146,50 @@ fn back_faces_occlude_and_are_flagged() {
 fn cameras_in_the_middle_of_the_map_render_without_panicking() {
     // Mesh vertices at or just behind the camera plane project to huge or infinite pixel
     // coordinates; those triangles are dropped, the rest render normally.
+    let voxel = 0.04;
     let map = {
-        let mut m = fused(0.04);
+        let mut m = fused(voxel);
         m.update_mesh(1.0);
         m
     };
+    let (near, far) = (map.config().depth_min_m, map.config().depth_max_m);
     let mesh = map.clone().extract_mesh(1.0);
     let vertex = mesh.positions[mesh.positions.len() / 2];
+    let grazing = (Vec3::new(0.0, 0.0, 1e-4), Vec3::new(1.0, 0.0, 1e-4));
+    let inside = (Vec3::new(0.3, -0.2, 0.25), Vec3::new(0.3, 0.8, 0.25));
     for (eye, target) in [
-        (Vec3::new(0.0, 0.0, 1e-4), Vec3::new(1.0, 0.0, 1e-4)), // grazing the ground plane
-        (vertex, vertex + Vec3::X),                             // at a mesh vertex, along an axis
-        (vertex, vertex + Vec3::new(0.3, 0.2, 0.1)),            // at a mesh vertex
-        (Vec3::new(0.3, -0.2, 0.25), Vec3::new(0.3, 0.8, 0.25)), // inside the sphere
+        grazing,                                     // grazing the ground plane
+        (vertex, vertex + Vec3::X),                  // at a mesh vertex, along an axis
+        (vertex, vertex + Vec3::new(0.3, 0.2, 0.1)), // at a mesh vertex
+        inside,                                      // inside the sphere
     ] {
         let cam = camera(eye, target, 64, 48, 50.0);
         let r = map.rasterize(&cam);
         for (d, c) in r.depth_m.data.iter().zip(&r.covered) {
             assert_eq!(*c, *d > 0.0);
             assert!(d.is_finite() && *d >= 0.0);
+            // Triangles nearer than depth_min are skipped and hits beyond depth_max dropped.
+            assert!(!*c || (near..=far).contains(d), "eye {eye}: depth {d} outside {near}..{far}");
         }
     }
+
+    // Inside the sphere (radius 0.25) every pixel sees its inner side, from the back, at the
+    // analytic depth within half a voxel (measured worst: 12 mm = 0.31 voxel).
+    let cam = camera(inside.0, inside.1, 64, 48, 50.0);
+    let r = map.rasterize(&cam);
+    let truth = render_analytic(&scene(), &cam);
+    assert!(r.covered.iter().all(|c| *c), "inside view has holes");
+    assert!(r.back_facing.iter().all(|b| *b), "inside view sees a front face");
+    let worst = depth_image_max_abs_diff(&r.depth_m, &truth.depth_m, &r.covered);
+    assert!(worst < 0.5 * voxel, "inside view: worst depth error {worst} m");
+
+    // Grazing the ground, the ground below the horizon is nearer than depth_min (the camera is
+    // 0.1 mm above it) and is skipped; what lies beyond depth_min (the sphere, the cuboid, the
+    // far ground) is covered and at the analytic depth: measured coverage 554 of 554 pixels,
+    // p90 error 20 mm = 0.5 voxel; the bounds allow 2 % holes and a p90 of one voxel.
+    let cam = camera(grazing.0, grazing.1, 64, 48, 50.0);
+    let r = map.rasterize(&cam);
+    let (coverage, p95, within) = compare(&r.depth_m, &r.covered, &cam, voxel);
+    assert!(coverage > 0.98, "grazing view: coverage {coverage}");
+    assert!(within > 0.9, "grazing view: only {within} within a voxel (p95 {p95})");
 }

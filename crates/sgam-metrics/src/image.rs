@@ -171,11 +171,16 @@ mod tests {
         assert!(s < 0.95 && s > 0.0, "ssim {s}");
         let c = noise_image(2, 32, 24);
         assert!(ssim(&a, &c, None).unwrap() < 0.1);
-        // constant shift of a flat image changes only luminance: ssim stays high but below 1
+        // Two flat images have zero variance and covariance, so SSIM is the luminance term alone,
+        // (2 mx my + c1) / (mx^2 + my^2 + c1) with c1 = 0.01^2, at every pixel (the blur of a
+        // constant is that constant up to f64 rounding, ~1e-16).
         let f = Image::filled(16, 16, [0.5f32; 3]);
         let g = Image::filled(16, 16, [0.55f32; 3]);
+        let (mx, my, c1) = (0.5f64, 0.55f32 as f64, 1e-4);
+        let expected = (2.0 * mx * my + c1) / (mx * mx + my * my + c1); // 0.99548...
         let sf = ssim(&f, &g, None).unwrap();
-        assert!(sf < 1.0 && sf > 0.98, "{sf}");
+        assert!((sf - expected).abs() < 1e-9, "{sf} vs {expected}");
+        assert!(ssim_map(&f, &g).unwrap().iter().all(|s| (s - expected).abs() < 1e-9));
     }
 
     #[test]

@@ -183,4 +183,31 @@ mod tests {
         let identical = scene_metrics(&r, &r).unwrap();
         assert!(identical.jsd.abs() < 1e-12 && identical.mmd < 1e-9 && identical.cov == 1.0);
     }
+
+    #[test]
+    fn hand_computed_sets_score_their_values() {
+        // Disjoint supports: the mean histograms share no bin, so JSD = ln 2 (its maximum), every
+        // cross distance is 1 (MMD = MinDist = 1), and each region's nearest other region (distance
+        // < 1) is in its own set, so 1-NNA = 1.
+        let g = vec![vec![1.0, 0.0, 0.0, 0.0], vec![0.6, 0.4, 0.0, 0.0]];
+        let r = vec![vec![0.0, 0.0, 1.0, 0.0], vec![0.0, 0.0, 0.3, 0.7], vec![0.0, 0.0, 0.0, 1.0]];
+        let m = scene_metrics(&g, &r).unwrap();
+        assert!((m.jsd - std::f64::consts::LN_2).abs() < 1e-12, "{m:?}");
+        assert!((m.mmd - 1.0).abs() < 1e-12 && (m.min_dist - 1.0).abs() < 1e-12, "{m:?}");
+        assert_eq!(m.one_nna, 1.0, "{m:?}");
+
+        // Coverage: three generated regions near the first two of four reference unit histograms
+        // (cosine distance 1 - 0.9 / sqrt(0.82) to the nearer one, no ties): those two are covered,
+        // COV = 2 / 4; MMD = (two near distances + 1 + 1) / 4.
+        let e = |i: usize| (0..4).map(|k| if k == i { 1.0 } else { 0.0 }).collect::<Vec<f32>>();
+        let g = vec![vec![0.9, 0.1, 0.0, 0.0], vec![0.1, 0.9, 0.0, 0.0], vec![0.8, 0.2, 0.0, 0.0]];
+        let r = vec![e(0), e(1), e(2), e(3)];
+        let m = scene_metrics(&g, &r).unwrap();
+        let near = 1.0 - 0.9 / 0.82f64.sqrt();
+        let third = 1.0 - 0.8 / 0.68f64.sqrt();
+        assert_eq!(m.cov, 0.5, "{m:?}");
+        // f32 histogram entries (0.9f32 != 0.9) limit agreement to ~1e-7.
+        assert!((m.mmd - (2.0 * near + 2.0) / 4.0).abs() < 1e-6, "{m:?}");
+        assert!((m.min_dist - (2.0 * near + third) / 3.0).abs() < 1e-6, "{m:?}");
+    }
 }

@@ -30,6 +30,14 @@ impl DepthCoding {
     }
 }
 
+/// Largest channel count of any layer [`ModelConfig::validate`] accepts.
+pub const MAX_CHANNELS: usize = 4096;
+/// Largest codebook [`ModelConfig::validate`] accepts.
+pub const MAX_CODEBOOK: usize = 65536;
+/// Largest (approximate) parameter count [`ModelConfig::validate`] accepts: 300 million, 1.2 GB
+/// of f32 weights (the paper preset has about 68 million).
+pub const MAX_PARAMETERS: u64 = 300_000_000;
+
 /// Architecture of the VQ autoencoder (taming-transformers VQGAN, generalised with a patch stem).
 ///
 /// Layout of every tensor inside the model is `[B, C, H, W]`. The encoder maps an `H x W` image to
@@ -182,7 +190,29 @@ impl ModelConfig {
         self.patch_size * (1usize << (self.ch_mult.len().saturating_sub(1)))
     }
 
-    /// Checks the configuration is buildable (non-empty levels, group counts dividing channels).
+    /// Rough parameter count (3x3 convs of the residual blocks, resampling and mid blocks; within
+    /// a factor of about 1.5 of the real count), used to bound a configuration's memory before any
+    /// tensor is allocated.
+    pub fn approx_parameters(&self) -> u128 {
+        // saturating: any configuration (even one validate would refuse) gives a number
+        let mul = |a: u128, b: u128| a.saturating_mul(b);
+        let nrb = self.num_res_blocks as u128;
+        let convs = mul(2, nrb).saturating_add(mul(2, nrb.saturating_add(1))).saturating_add(2);
+        let mut n: u128 = 0;
+        for m in &self.ch_mult {
+            let c = mul(self.ch as u128, *m as u128);
+            // encoder: nrb blocks of 2 convs; decoder: nrb + 1 blocks of 2 convs; one resampling conv each
+            n = n.saturating_add(mul(mul(9, mul(c, c)), convs));
+        }
+        let last = mul(self.ch as u128, self.ch_mult.last().copied().unwrap_or(1) as u128);
+        n = n.saturating_add(mul(72, mul(last, last))); // mid blocks of encoder and decoder
+        n = n.saturating_add(mul(2, mul(self.n_embed as u128, self.embed_dim as u128))); // codebook (+ code head)
+        n.saturating_add(mul(18, mul(last, self.z_channels as u128)))
+    }
+
+    /// Checks the configuration is buildable (non-empty levels, group counts dividing channels)
+    /// and within memory: every size has an upper bound ([`MAX_CHANNELS`], [`MAX_CODEBOOK`],
+    /// [`MAX_PARAMETERS`], ...). Errors name the field and the accepted range.
     pub fn validate(&self) -> Result<(), ModelError> {
         let bad = |msg: String| Err(ModelError::Config(format!("{}: {msg}", self.name)));
         if self.ch_mult.is_empty() || self.ch == 0 || self.patch_size == 0 {
@@ -190,6 +220,41 @@ impl ModelConfig {
         }
         if self.n_embed == 0 || self.embed_dim == 0 || self.z_channels == 0 {
             return bad("codebook and latent sizes must be non-zero".into());
+        }
+        let sizes = [
+            ("ch", self.ch, MAX_CHANNELS),
+            ("z_channels", self.z_channels, MAX_CHANNELS),
+            ("embed_dim", self.embed_dim, MAX_CHANNELS),
+            ("n_embed", self.n_embed, MAX_CODEBOOK),
+            ("patch_size", self.patch_size, 64),
+            ("num_res_blocks", self.num_res_blocks, 16),
+            ("resolution", self.resolution, 8192),
+            ("ch_mult levels", self.ch_mult.len(), 8),
+            ("norm_groups", self.norm_groups, MAX_CHANNELS),
+        ];
+        for (name, value, max) in sizes {
+            if value > max {
+                return bad(format!("{name} {value} is out of range (at most {max})"));
+            }
+        }
+        for m in &self.ch_mult {
+            let c = self.ch.saturating_mul(*m);
+            if *m == 0 || c > MAX_CHANNELS {
+                return bad(format!("ch_mult {m} gives {c} channels (each level needs 1..={MAX_CHANNELS} channels)"));
+            }
+        }
+        let params = self.approx_parameters();
+        if params > MAX_PARAMETERS as u128 {
+            return bad(format!(
+                "about {params} parameters, beyond the {MAX_PARAMETERS} this build accepts (the paper preset has \
+                 about 68 million)"
+            ));
+        }
+        if !(self.norm_eps.is_finite() && self.norm_eps > 0.0 && self.norm_eps < 1.0) {
+            return bad(format!("norm_eps {} must be in (0, 1)", self.norm_eps));
+        }
+        if !(self.beta.is_finite() && (0.0..=10.0).contains(&self.beta)) {
+            return bad(format!("beta {} must be in 0..=10", self.beta));
         }
         for m in &self.ch_mult {
             let c = self.ch * m;
@@ -202,7 +267,12 @@ impl ModelConfig {
                 return bad(format!("code_tau {tau} must be a positive number"));
             }
         }
-        if self.depth.near_m <= 0.0 || self.depth.far_m <= self.depth.near_m {
+        let d = &self.depth;
+        if !(d.near_m.is_finite() && d.far_m.is_finite() && d.offset_m.is_finite())
+            || d.near_m <= 0.0
+            || d.far_m <= d.near_m
+            || d.far_m > 1e6
+        {
             return bad(format!("depth near {} / far {} invalid", self.depth.near_m, self.depth.far_m));
         }
         Ok(())

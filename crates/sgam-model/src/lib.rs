@@ -17,12 +17,17 @@
 //! - **Generative stage 2** ([`generative`]): the encoder trained with cross-entropy over the
 //!   codes the frozen encoder gives the clean target, logits `-||z - e_k||^2 / tau`; the refiner
 //!   samples `softmax(-d / (T tau))` in missing cells, iteratively for large holes.
+//! - **Checkpoints** ([`checkpoint`]) are folders committed as a whole (written beside, swapped in
+//!   by renames) with a manifest of sizes and CRC-32s checked on resume; weights with a
+//!   non-finite value are neither loaded ([`params::load_named`]) nor written.
 //! - **Determinism**: weights are initialised from a seed; sampling and training draw from a
 //!   seeded `ChaCha8Rng` passed in.
 
 pub mod blocks;
+pub mod checkpoint;
 pub mod config;
 pub mod convert;
+pub mod decoder_tune;
 pub mod generative;
 pub mod loss;
 pub mod lpips;

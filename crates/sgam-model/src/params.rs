@@ -129,6 +129,8 @@ pub fn parameter_count<M: Module>(module: &M) -> usize {
 
 /// Replaces parameters by path from `tensors`. Every module parameter must be present with the same
 /// shape unless `allow_missing`; names in `tensors` the module lacks are errors unless `allow_unused`.
+/// A parameter with a non-finite value (NaN, +-inf) is an error: this is the one place weights
+/// enter a model (weight files, converted checkpoints, resumed training, codebook updates).
 pub fn load_named<M: Module>(
     module: M,
     tensors: &BTreeMap<String, NamedTensor>,
@@ -169,6 +171,10 @@ pub fn load_named<M: Module>(
                 self.errors.push(format!("parameter {path}: shape {:?} in file, {:?} in model", src.shape, shape));
                 return Param::from_mapped_value(id, old, mapper);
             }
+            if let Some(bad) = first_non_finite(&src.values) {
+                self.errors.push(format!("parameter {path}: {bad}"));
+                return Param::from_mapped_value(id, old, mapper);
+            }
             let new = Tensor::<D>::from_data(TensorData::new(src.values.clone(), shape), &old.device());
             // keep the parameter trainable when it was (loading into a model under training)
             let new = if old.is_require_grad() { new.require_grad() } else { new };
@@ -202,23 +208,44 @@ pub enum WeightPrecision {
     F16,
 }
 
+/// Largest finite f16 value: [`WeightPrecision::F16`] refuses tensors with larger magnitudes.
+pub const F16_MAX: f32 = 65504.0;
+
+/// The first non-finite value of `values`, described (`"NaN at index 3 (of 12)"`).
+pub fn first_non_finite(values: &[f32]) -> Option<String> {
+    let (i, v) = values.iter().enumerate().find(|(_, v)| !v.is_finite())?;
+    let n = values.iter().filter(|v| !v.is_finite()).count();
+    Some(format!("{v} at index {i} ({n} non-finite of {} values)", values.len()))
+}
+
 /// Serialises named tensors to safetensors bytes, with `metadata` (e.g. the model config JSON).
+/// Errors on a non-finite value (a diverged model is never written) and, for
+/// [`WeightPrecision::F16`], on a magnitude above [`F16_MAX`] (it would become infinite).
 pub fn to_safetensors_bytes(
     tensors: &BTreeMap<String, NamedTensor>,
     precision: WeightPrecision,
     metadata: Option<std::collections::HashMap<String, String>>,
 ) -> Result<Vec<u8>, ModelError> {
     use safetensors::tensor::{Dtype, TensorView};
-    let buffers: Vec<(String, Vec<usize>, Vec<u8>)> = tensors
-        .iter()
-        .map(|(name, t)| {
-            let bytes: Vec<u8> = match precision {
-                WeightPrecision::F32 => t.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-                WeightPrecision::F16 => t.values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect(),
-            };
-            (name.clone(), t.shape.clone(), bytes)
-        })
-        .collect();
+    let mut buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::with_capacity(tensors.len());
+    for (name, t) in tensors {
+        if let Some(bad) = first_non_finite(&t.values) {
+            return Err(ModelError::Weights(format!("tensor {name}: {bad}; refusing to write it")));
+        }
+        let bytes: Vec<u8> = match precision {
+            WeightPrecision::F32 => t.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
+            WeightPrecision::F16 => {
+                if let Some((i, v)) = t.values.iter().enumerate().find(|(_, v)| v.abs() > F16_MAX) {
+                    return Err(ModelError::Weights(format!(
+                        "tensor {name}: value {v} at index {i} overflows f16 (largest finite {F16_MAX}); \
+                         keep 32-bit floats"
+                    )));
+                }
+                t.values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect()
+            }
+        };
+        buffers.push((name.clone(), t.shape.clone(), bytes));
+    }
     let dtype = match precision {
         WeightPrecision::F32 => Dtype::F32,
         WeightPrecision::F16 => Dtype::F16,
@@ -268,9 +295,8 @@ pub fn save_safetensors<M: Module>(
     write_atomic(path, &bytes)
 }
 
-/// Writes `bytes` to `path` through a temporary sibling file and a rename.
+/// Writes `bytes` to `path` atomically with [`sgam_io::write_atomic`] (a uniquely named
+/// temporary sibling, fsynced, renamed; removed on failure); errors name `path`.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ModelError> {
-    let tmp = path.with_extension("tmp-write");
-    std::fs::write(&tmp, bytes).map_err(|e| ModelError::Io(format!("writing {}: {e}", tmp.display())))?;
-    std::fs::rename(&tmp, path).map_err(|e| ModelError::Io(format!("renaming to {}: {e}", path.display())))
+    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, bytes)).map_err(|e| ModelError::Io(e.to_string()))
 }

@@ -194,6 +194,19 @@ impl CodebookUsage {
         h.exp()
     }
 
+    /// Checks a stored usage record fits a codebook of `n_embed` codes (both lists that long);
+    /// the message says what is wrong.
+    pub fn check(&self, n_embed: usize) -> Result<(), String> {
+        if self.last_used.len() != n_embed || self.counts.len() != n_embed {
+            return Err(format!(
+                "usage has {} last_used and {} counts entries for a codebook of {n_embed}",
+                self.last_used.len(),
+                self.counts.len()
+            ));
+        }
+        Ok(())
+    }
+
     /// Resets the counts, returning the perplexity they gave.
     pub fn take_counts(&mut self) -> f64 {
         let p = self.perplexity();
@@ -218,6 +231,28 @@ impl FeatureBuffer {
     /// An empty buffer.
     pub fn new(dim: usize, capacity: usize) -> Self {
         Self { dim, capacity, rows: Vec::new(), next: 0 }
+    }
+
+    /// Checks a stored buffer is consistent: rows of `dim` values, at most `capacity` of them,
+    /// finite; the message says what is wrong.
+    pub fn check(&self, dim: usize) -> Result<(), String> {
+        if self.dim != dim || dim == 0 {
+            return Err(format!("feature buffer rows have {} values, the codebook {dim}", self.dim));
+        }
+        if !self.rows.len().is_multiple_of(dim) || self.len() > self.capacity {
+            return Err(format!(
+                "feature buffer holds {} values: not whole rows of {dim}, or more than {} rows",
+                self.rows.len(),
+                self.capacity
+            ));
+        }
+        if self.next >= self.capacity.max(1) {
+            return Err(format!("feature buffer position {} is beyond its {} rows", self.next, self.capacity));
+        }
+        if let Some(bad) = crate::params::first_non_finite(&self.rows) {
+            return Err(format!("feature buffer: {bad}"));
+        }
+        Ok(())
     }
 
     /// Number of rows held.

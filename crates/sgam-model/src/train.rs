@@ -7,10 +7,18 @@
 //!   `quant_conv`, the codebook, `post_quant_conv` and the decoder are frozen (bit-identical).
 //!
 //! Data comes through [`PairSource`], so this crate knows nothing about maps or synthetic worlds.
-//! Checkpoints in the run folder: `model.safetensors` (f32), `disc.safetensors`,
-//! `optim_model.bpk` / `optim_disc.bpk` (burn optimizer records) and `config.json`
-//! ([`CheckpointState`]: model config, train config, step, RNG state, codebook usage, k-means buffer).
+//!
+//! A checkpoint is one folder, `RUN/ckpt`, committed as a whole ([`crate::checkpoint`]: written
+//! to `RUN/ckpt.new` with a manifest of sizes and CRC-32s, swapped in by renames):
+//! `model.safetensors` (f32), `disc.safetensors`, `optim_model.bpk` / `optim_disc.bpk` (burn
+//! optimizer records) and `state.json` ([`CheckpointState`]: format version, model config, train
+//! config, step, RNG state, codebook usage, k-means buffer). After each commit the weights are
+//! also published as `RUN/model.safetensors` (the file `--init` and `train export` take) and a
+//! summary as `RUN/config.json` ([`RunSummary`]); resuming reads only `RUN/ckpt`. Training stops
+//! with [`TrainError::Diverged`] when a loss or a weight becomes non-finite; a diverged model is
+//! never written.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -25,11 +33,15 @@ use serde::{Deserialize, Serialize};
 use sgam_core::RgbdFrame;
 
 use crate::blocks::pixel_shuffle;
+use crate::checkpoint::{commit_folder, committed_folder, verify_folder};
 use crate::config::ModelConfig;
 use crate::loss::{adaptive_weight, generator_loss, gradient_l1, hinge_d_loss, l1, Discriminator, DiscriminatorConfig};
 use crate::model::VqModel;
 use crate::packing::{pack, pack_target, unpack};
-use crate::params::{from_safetensors_bytes, load_named, save_safetensors, write_atomic, WeightPrecision};
+use crate::params::{
+    first_non_finite, from_safetensors_bytes, load_named, named_tensors, save_safetensors, write_atomic,
+    WeightPrecision,
+};
 use crate::quantize::{
     codebook_values, kmeans_revive, quantize, set_codebook, to_host, CodebookUsage, FeatureBuffer, Sampling,
 };
@@ -116,8 +128,31 @@ pub struct TrainConfig {
     pub val_every: u64,
     /// Seed of weights, batches and sampling.
     pub seed: u64,
-    /// Weights to start from (stage 2: the stage-1 model). Ignored when resuming.
+    /// Weights to start from (stage 2: the stage-1 model). Read only by a new run; a resumed
+    /// run must name the same file.
     pub init_weights: Option<PathBuf>,
+    /// Options of the pair source (e.g. the scene count), recorded so that a resumed run can
+    /// check it is fed the same data.
+    #[serde(default)]
+    pub data: BTreeMap<String, String>,
+}
+
+/// Largest batch [`TrainConfig::validate`] accepts.
+pub const MAX_BATCH: usize = 256;
+/// Largest crop side (pixels) [`TrainConfig::validate`] accepts.
+pub const MAX_CROP: u32 = 4096;
+/// Largest step count [`TrainConfig::validate`] accepts.
+pub const MAX_STEPS: u64 = 1_000_000_000;
+
+/// One field whose value a resumed run was asked to change.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ConfigDifference {
+    /// Field name of [`TrainConfig`] (or `model_config`).
+    pub field: &'static str,
+    /// Value the run was started with.
+    pub stored: String,
+    /// Value asked for now.
+    pub asked: String,
 }
 
 /// Fraction of `lr` that the cosine decay ends at.
@@ -134,6 +169,103 @@ impl TrainConfig {
             }
             _ => self.lr,
         }
+    }
+
+    /// Checks every field is finite and in range for `model` (the crop a positive multiple of its
+    /// downsampling factor). Errors name the field and the accepted range.
+    pub fn validate(&self, model: &ModelConfig) -> Result<(), ModelError> {
+        let bad = |m: String| Err(ModelError::Config(format!("training: {m}")));
+        if self.steps > MAX_STEPS {
+            return bad(format!("steps {} out of range 0..={MAX_STEPS}", self.steps));
+        }
+        if !(1..=MAX_BATCH).contains(&self.batch) {
+            return bad(format!("batch {} out of range 1..={MAX_BATCH}", self.batch));
+        }
+        let f = model.downsample_factor() as u32;
+        if !(f..=MAX_CROP).contains(&self.crop) || !self.crop.is_multiple_of(f) {
+            return bad(format!(
+                "crop {} must be a multiple of the model's downsampling factor {f} in {f}..={MAX_CROP}",
+                self.crop
+            ));
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0 && self.lr <= 1.0) {
+            return bad(format!("lr {} must be in (0, 1]", self.lr));
+        }
+        if let Some(from) = self.lr_decay_from {
+            if from >= self.steps {
+                return bad(format!("lr_decay_from {from} must be below steps {}", self.steps));
+            }
+        }
+        for (name, v) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(v.is_finite() && (0.0..1.0).contains(&v)) {
+                return bad(format!("{name} {v} must be in [0, 1)"));
+            }
+        }
+        for (name, v) in [
+            ("disc_weight", self.disc_weight),
+            ("perceptual_weight", self.perceptual_weight),
+            ("codebook_weight", self.codebook_weight),
+            ("missing_weight", self.missing_weight),
+        ] {
+            if !(v.is_finite() && (0.0..=1000.0).contains(&v)) {
+                return bad(format!("{name} {v} must be in 0..=1000"));
+            }
+        }
+        if self.missing_weight <= 0.0 {
+            return bad(format!("missing_weight {} must be positive", self.missing_weight));
+        }
+        if !(self.kmeans_dead_fraction.is_finite() && (0.0..=1.0).contains(&self.kmeans_dead_fraction)) {
+            return bad(format!("kmeans_dead_fraction {} must be in 0..=1", self.kmeans_dead_fraction));
+        }
+        if self.kmeans_iters > 1000 || self.kmeans_window == 0 {
+            return bad(format!(
+                "kmeans_iters {} (at most 1000) / kmeans_window {} (at least 1) out of range",
+                self.kmeans_iters, self.kmeans_window
+            ));
+        }
+        if self.feature_buffer > 1 << 20 {
+            return bad(format!("feature_buffer {} out of range 0..={}", self.feature_buffer, 1 << 20));
+        }
+        Ok(())
+    }
+
+    /// The fields a run resumed with `asked` would change. A resumed run keeps its configuration
+    /// except `steps`, `lr_decay_from`, `ckpt_every` and `val_every`; anything else asked
+    /// differently is a difference (stage first when it differs).
+    pub fn resume_differences(&self, asked: &TrainConfig) -> Vec<ConfigDifference> {
+        let mut out = Vec::new();
+        let mut cmp = |field: &'static str, a: String, b: String| {
+            if a != b {
+                out.push(ConfigDifference { field, stored: a, asked: b });
+            }
+        };
+        let stage = |s: Stage| if s == Stage::One { "1".to_string() } else { "2".to_string() };
+        cmp("stage", stage(self.stage), stage(asked.stage));
+        cmp("batch", self.batch.to_string(), asked.batch.to_string());
+        cmp("crop", self.crop.to_string(), asked.crop.to_string());
+        cmp("lr", self.lr.to_string(), asked.lr.to_string());
+        cmp("beta1", self.beta1.to_string(), asked.beta1.to_string());
+        cmp("beta2", self.beta2.to_string(), asked.beta2.to_string());
+        cmp("warmup_no_quant_steps", self.warmup_no_quant_steps.to_string(), asked.warmup_no_quant_steps.to_string());
+        cmp("disc_start", self.disc_start.to_string(), asked.disc_start.to_string());
+        cmp("disc_weight", self.disc_weight.to_string(), asked.disc_weight.to_string());
+        cmp("perceptual_weight", self.perceptual_weight.to_string(), asked.perceptual_weight.to_string());
+        cmp("missing_weight", self.missing_weight.to_string(), asked.missing_weight.to_string());
+        cmp("codebook_weight", self.codebook_weight.to_string(), asked.codebook_weight.to_string());
+        cmp("seed", self.seed.to_string(), asked.seed.to_string());
+        let path = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "none".into());
+        cmp("init_weights", path(&self.init_weights), path(&asked.init_weights));
+        for key in self.data.keys().chain(asked.data.keys().filter(|k| !self.data.contains_key(*k))) {
+            let get = |m: &BTreeMap<String, String>| m.get(key).cloned().unwrap_or_else(|| "unset".into());
+            if get(&self.data) != get(&asked.data) {
+                out.push(ConfigDifference {
+                    field: "data",
+                    stored: format!("{key} {}", get(&self.data)),
+                    asked: format!("{key} {}", get(&asked.data)),
+                });
+            }
+        }
+        out
     }
 
     /// Defaults for a stage: batch 4, crop 128, lr 2e-4, Adam (0.5, 0.9), disc from step 10k.
@@ -162,6 +294,7 @@ impl TrainConfig {
             val_every: 500,
             seed: 0,
             init_weights: None,
+            data: BTreeMap::new(),
         }
     }
 }
@@ -217,9 +350,15 @@ pub struct TrainProgress {
     pub validation: Option<(f32, Vec<ValidationImage>)>,
 }
 
-/// Serialised trainer state (`config.json` in the run folder).
+/// Format version of [`CheckpointState`] this build writes and reads.
+pub const STATE_VERSION: u32 = 2;
+
+/// Serialised trainer state (`RUN/ckpt/state.json`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct CheckpointState {
+    /// [`STATE_VERSION`] (absent in the first layout's `config.json`: 0).
+    #[serde(default)]
+    pub version: u32,
     /// Model architecture.
     pub model_config: ModelConfig,
     /// Training configuration.
@@ -238,15 +377,43 @@ pub struct CheckpointState {
     pub buffer: FeatureBuffer,
 }
 
+/// What `RUN/config.json` holds: the run's configuration and last committed step, for people
+/// and scripts (resuming reads `RUN/ckpt/state.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunSummary {
+    /// Completed steps of the last committed checkpoint.
+    pub step: u64,
+    /// Model architecture.
+    pub model_config: ModelConfig,
+    /// Training configuration.
+    pub train_config: TrainConfig,
+}
+
 /// Errors of training.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {
-    /// A model error (weights, config, input).
+    /// A model error (weights, config, input, checkpoint).
     #[error(transparent)]
     Model(#[from] ModelError),
     /// The pair source failed.
     #[error("pair source: {0}")]
     Source(String),
+    /// A loss or a weight became non-finite; nothing was written after it.
+    #[error("training diverged at step {step}: {what} (lower the learning rate); the last checkpoint is kept")]
+    Diverged {
+        /// The step that diverged.
+        step: u64,
+        /// The non-finite quantity.
+        what: String,
+    },
+    /// A resumed run was asked for another configuration than the one it was started with.
+    #[error("{}: resuming with other options than the run was started with ({}); resume with its options or start a new run", .run.display(), .differences.iter().map(|d| format!("{} {} (asked {})", d.field, d.stored, d.asked)).collect::<Vec<_>>().join(", "))]
+    ResumeMismatch {
+        /// The run folder.
+        run: PathBuf,
+        /// What differs (the stage first when it does).
+        differences: Vec<ConfigDifference>,
+    },
 }
 
 /// A training session: model, discriminator, optimizers, RNG and bookkeeping.
@@ -302,6 +469,53 @@ fn read_weights(path: &Path) -> Result<std::collections::BTreeMap<String, crate:
     Ok(from_safetensors_bytes(&bytes).map_err(|e| ModelError::Weights(format!("{}: {e}", path.display())))?.0)
 }
 
+/// Loads the weights file `path` into `module` ([`load_named`]); errors name the file.
+fn load_weights<M: Module>(module: M, path: &Path) -> Result<M, ModelError> {
+    load_named(module, &read_weights(path)?, false, false).map_err(|e| match e {
+        ModelError::Weights(m) => ModelError::Weights(format!("{}: {m}", path.display())),
+        other => other,
+    })
+}
+
+/// Folder of a run's committed checkpoint (`RUN/ckpt`).
+pub const CHECKPOINT_DIR: &str = "ckpt";
+
+/// Reads and validates the committed checkpoint of `run_dir`: its manifest (every file's size
+/// and CRC-32), the state's version and contents (configurations in range, codebook usage and
+/// feature buffer fitting the model). `Ok(None)` when the run has no checkpoint; an error for a
+/// checkpoint in the first layout (five separate files, which a kill could leave mixed).
+pub fn read_checkpoint(run_dir: &Path) -> Result<Option<(PathBuf, CheckpointState)>, ModelError> {
+    let Some(dir) = committed_folder(run_dir, CHECKPOINT_DIR) else {
+        if run_dir.join("optim_model.bpk").exists() {
+            return Err(ModelError::Checkpoint(format!(
+                "{}: a checkpoint in the layout of an older sgam (five separate files that an interrupted save \
+                 could leave mixed); it cannot be verified, so it is not resumed: start a new run with \
+                 --init {}",
+                run_dir.display(),
+                run_dir.join("model.safetensors").display()
+            )));
+        }
+        return Ok(None);
+    };
+    verify_folder(&dir)?;
+    let path = dir.join("state.json");
+    let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+    let state: CheckpointState = serde_json::from_slice(&bytes)
+        .map_err(|e| ModelError::Checkpoint(format!("{}: not a training state: {e}", path.display())))?;
+    let bad = |m: String| ModelError::Checkpoint(format!("{}: {m}", path.display()));
+    if state.version != STATE_VERSION {
+        return Err(bad(format!("state version {} (this build reads {STATE_VERSION})", state.version)));
+    }
+    state.model_config.validate().map_err(|e| bad(e.to_string()))?;
+    state.train_config.validate(&state.model_config).map_err(|e| bad(e.to_string()))?;
+    state.usage.check(state.model_config.n_embed).map_err(bad)?;
+    state.buffer.check(state.model_config.embed_dim).map_err(bad)?;
+    if state.step > state.train_config.steps.max(MAX_STEPS) {
+        return Err(bad(format!("step {} out of range", state.step)));
+    }
+    Ok(Some((dir, state)))
+}
+
 fn psnr_rgb(pred: &[f32], target: &[f32], b: usize, hw: usize) -> f32 {
     let mut se = 0.0f64;
     let mut n = 0usize;
@@ -326,7 +540,7 @@ impl Trainer {
         let device = crate::default_device();
         let mut model = VqModel::new(model_config, train_config.seed, &device)?;
         if let Some(path) = &train_config.init_weights {
-            model = load_named(model, &read_weights(path)?, false, false)?;
+            model = load_weights(model, path)?;
         }
         let model = freeze_for_stage(model, train_config.stage).train();
         let disc = Discriminator::new(&train_config.disc, train_config.seed, &device).train();
@@ -345,17 +559,26 @@ impl Trainer {
         })
     }
 
-    /// Writes a checkpoint into `run_dir` (created if needed).
-    pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
+    /// The first non-finite weight of the model or the discriminator, described.
+    pub fn non_finite_weight(&self) -> Option<String> {
+        let model = named_tensors(&self.model).into_iter().map(|(n, t)| (n, t, "model"));
+        let disc = named_tensors(&self.disc).into_iter().map(|(n, t)| (n, t, "discriminator"));
+        model
+            .chain(disc)
+            .find_map(|(name, t, which)| first_non_finite(&t.values).map(|b| format!("{which} weight {name}: {b}")))
+    }
+
+    /// Commits a checkpoint `run_dir/ckpt` as a whole (see the module docs), then publishes the
+    /// weights as `run_dir/model.safetensors` and the summary as `run_dir/config.json`. Writes
+    /// nothing when a weight is non-finite ([`TrainError::Diverged`]).
+    pub fn save(&self, run_dir: &Path) -> Result<(), TrainError> {
+        if let Some(what) = self.non_finite_weight() {
+            return Err(TrainError::Diverged { step: self.step, what });
+        }
         std::fs::create_dir_all(run_dir).map_err(|e| ModelError::Io(format!("creating {}: {e}", run_dir.display())))?;
         let meta = crate::refiner::weight_metadata(&self.model_config)?;
-        save_safetensors(&self.model, &run_dir.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
-        save_safetensors(&self.disc, &run_dir.join("disc.safetensors"), WeightPrecision::F32, None)?;
-        for (optim, name) in [(&self.optim_model, "optim_model.bpk"), (&self.optim_disc, "optim_disc.bpk")] {
-            let bytes = optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer {name}: {e}")))?;
-            write_atomic(&run_dir.join(name), &bytes)?;
-        }
         let state = CheckpointState {
+            version: STATE_VERSION,
             model_config: self.model_config.clone(),
             train_config: self.train_config.clone(),
             step: self.step,
@@ -366,29 +589,48 @@ impl Trainer {
             buffer: self.buffer.clone(),
         };
         let json = serde_json::to_vec(&state).map_err(|e| ModelError::Checkpoint(format!("serialising state: {e}")))?;
-        write_atomic(&run_dir.join("config.json"), &json)
+        let dir = commit_folder(run_dir, CHECKPOINT_DIR, |new| {
+            save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
+            save_safetensors(&self.disc, &new.join("disc.safetensors"), WeightPrecision::F32, None)?;
+            for (optim, name) in [(&self.optim_model, "optim_model.bpk"), (&self.optim_disc, "optim_disc.bpk")] {
+                let bytes = optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer {name}: {e}")))?;
+                write_atomic(&new.join(name), &bytes)?;
+            }
+            write_atomic(&new.join("state.json"), &json)
+        })?;
+        let weights = std::fs::read(dir.join("model.safetensors"))
+            .map_err(|e| ModelError::Io(format!("reading {}: {e}", dir.join("model.safetensors").display())))?;
+        write_atomic(&run_dir.join("model.safetensors"), &weights)?;
+        let summary = RunSummary {
+            step: self.step,
+            model_config: self.model_config.clone(),
+            train_config: self.train_config.clone(),
+        };
+        let json = serde_json::to_vec_pretty(&summary)
+            .map_err(|e| ModelError::Checkpoint(format!("serialising the summary: {e}")))?;
+        write_atomic(&run_dir.join("config.json"), &json)?;
+        Ok(())
     }
 
-    /// Resumes from the checkpoint in `run_dir`. `steps` overrides the stored total when given.
+    /// Resumes from the committed checkpoint of `run_dir` ([`read_checkpoint`]). `steps`
+    /// overrides the stored total when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
-        let cfg_path = run_dir.join("config.json");
-        let bytes = std::fs::read(&cfg_path)
-            .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", cfg_path.display())))?;
-        let state: CheckpointState = serde_json::from_slice(&bytes)
-            .map_err(|e| ModelError::Checkpoint(format!("parsing {}: {e}", cfg_path.display())))?;
+        let (dir, state) = read_checkpoint(run_dir)?.ok_or_else(|| {
+            ModelError::Checkpoint(format!("{}: no checkpoint ({CHECKPOINT_DIR}/)", run_dir.display()))
+        })?;
         let mut train_config = state.train_config.clone();
         if let Some(s) = steps {
             train_config.steps = s;
         }
         let device = crate::default_device();
         let model = VqModel::new(&state.model_config, train_config.seed, &device)?;
-        let model = load_named(model, &read_weights(&run_dir.join("model.safetensors"))?, false, false)?;
+        let model = load_weights(model, &dir.join("model.safetensors"))?;
         let model = freeze_for_stage(model, train_config.stage).train();
         let disc = Discriminator::new(&train_config.disc, train_config.seed, &device);
-        let disc = load_named(disc, &read_weights(&run_dir.join("disc.safetensors"))?, false, false)?.train();
+        let disc = load_weights(disc, &dir.join("disc.safetensors"))?.train();
         let mut optims = Vec::new();
         for name in ["optim_model.bpk", "optim_disc.bpk"] {
-            let path = run_dir.join(name);
+            let path = dir.join(name);
             let optim = adam(&train_config)
                 .load(&path)
                 .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", path.display())))?;
@@ -484,6 +726,9 @@ impl Trainer {
             total = total + g_loss.mul_scalar(w);
         }
         report.total = scalar(&total)?;
+        if !report.total.is_finite() {
+            return Err(TrainError::Diverged { step, what: format!("the loss is {}", report.total) });
+        }
         let grads = total.backward();
         let grads = GradientsParams::from_grads(grads, &self.model);
         self.model = self.optim_model.step(cfg.lr_at(self.step), self.model.clone(), grads);
@@ -494,6 +739,12 @@ impl Trainer {
             let logits_fake = self.disc.forward(rec.clone().detach());
             let d_loss = hinge_d_loss(logits_real, logits_fake);
             report.d_loss = scalar(&d_loss)?;
+            if !report.d_loss.is_finite() {
+                return Err(TrainError::Diverged {
+                    step,
+                    what: format!("the discriminator loss is {}", report.d_loss),
+                });
+            }
             let grads = GradientsParams::from_grads(d_loss.backward(), &self.disc);
             self.disc = self.optim_disc.step(cfg.lr_at(self.step), self.disc.clone(), grads);
         }
@@ -643,9 +894,10 @@ pub struct TrainSummary {
     pub images_per_s: f32,
 }
 
-/// Trains (or resumes, when `run_dir/config.json` exists) until `train_config.steps`, writing
-/// checkpoints into `run_dir` and calling `progress` after every step. A resumed run keeps its
-/// stored configuration except `steps` and, when given, `lr_decay_from`.
+/// Trains (or resumes, when `run_dir` has a committed checkpoint) until `train_config.steps`,
+/// writing checkpoints into `run_dir` and calling `progress` after every step. A resumed run
+/// must be asked for its stored configuration ([`TrainError::ResumeMismatch`] otherwise) except
+/// `steps`, `ckpt_every`, `val_every` and, when given, `lr_decay_from`.
 pub fn train(
     run_dir: &Path,
     model_config: &ModelConfig,
@@ -654,12 +906,27 @@ pub fn train(
     val: &[TrainPair],
     progress: &mut dyn FnMut(&TrainProgress),
 ) -> Result<TrainSummary, TrainError> {
-    let mut trainer = if run_dir.join("config.json").exists() {
+    model_config.validate()?;
+    train_config.validate(model_config)?;
+    let mut trainer = if let Some((_, state)) = read_checkpoint(run_dir)? {
+        let mut differences = state.train_config.resume_differences(train_config);
+        if state.model_config != *model_config {
+            differences.push(ConfigDifference {
+                field: "model_config",
+                stored: state.model_config.name.clone(),
+                asked: model_config.name.clone(),
+            });
+        }
+        if !differences.is_empty() {
+            return Err(TrainError::ResumeMismatch { run: run_dir.to_path_buf(), differences });
+        }
         let mut t = Trainer::resume(run_dir, Some(train_config.steps))?;
         // a decay asked for on resume applies (the usual way to fine-tune a run's tail)
         if train_config.lr_decay_from.is_some() {
             t.train_config.lr_decay_from = train_config.lr_decay_from;
         }
+        t.train_config.ckpt_every = train_config.ckpt_every;
+        t.train_config.val_every = train_config.val_every;
         t
     } else {
         Trainer::new(model_config, train_config)?

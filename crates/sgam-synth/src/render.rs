@@ -823,6 +823,19 @@ mod tests {
 
     #[test]
     fn srgb_round_trip() {
+        // IEC 61966-2-1 values worked out in f64: ((0.5 + 0.055) / 1.055)^2.4 = 0.2140411405;
+        // the knee sits at sRGB 0.04045 = linear 0.04045 / 12.92 = 0.0031308, where the linear
+        // and power segments meet (0.0031308050 vs 0.0031308073).
+        assert!((srgb_to_linear(0.5) - 0.214_041_14).abs() < 1e-6, "{}", srgb_to_linear(0.5));
+        assert!((linear_to_srgb(0.214_041_14) - 0.5).abs() < 1e-6);
+        assert!((srgb_to_linear(0.04045) - 0.003_130_805).abs() < 1e-8);
+        assert!((linear_to_srgb(0.003_130_8) - 0.040_449_94).abs() < 1e-7);
+        assert!((srgb_to_linear(0.04046) - 0.003_131_6).abs() < 1e-7, "power segment just above the knee");
+        assert!((srgb_to_linear(0.02) - 0.02 / 12.92).abs() < 1e-9, "linear segment below the knee");
+        for (end, srgb) in [(0.0, srgb_to_linear(0.0)), (1.0, srgb_to_linear(1.0)), (0.0, linear_to_srgb(0.0))] {
+            assert!((srgb - end).abs() < 1e-6);
+        }
+        assert!((linear_to_srgb(1.0) - 1.0).abs() < 1e-6);
         for i in 0..=100 {
             let c = i as f32 / 100.0;
             assert!((linear_to_srgb(srgb_to_linear(c)) - c).abs() < 1e-5);

@@ -518,6 +518,7 @@ mod tests {
 
     #[test]
     fn resting_objects_touch_the_ground_or_a_support() {
+        // Without stacking every object stands on the ground.
         let scene = Scene::generate(3, &SceneConfig::default());
         assert_eq!(scene.objects.len(), 882);
         for (k, o) in scene.objects.iter().enumerate() {
@@ -525,6 +526,34 @@ mod tests {
             let (lo, _) = o.aabb();
             assert!((lo.z - scene.ground_z_m).abs() < 1e-4, "object {k} floats: {}", lo.z);
         }
+        // With stacking, an object off the ground rests on another: the point 1 mm below its
+        // lowest point (every stackable shape's lowest point is under its centre) lies inside a
+        // supporter whose top is at the object's bottom.
+        let config = SceneConfig { allow_stacking: true, stack_fraction: 1.0, ..SceneConfig::default() };
+        let mut stacked = 0;
+        for seed in [3, 4] {
+            let scene = Scene::generate(seed, &config);
+            for o in &scene.objects {
+                let (lo, _) = o.aabb();
+                if (lo.z - scene.ground_z_m).abs() < 1e-4 {
+                    continue;
+                }
+                stacked += 1;
+                let below = o.world_from_object.translation.truncate().extend(lo.z - 1e-3);
+                let supporter = scene.objects.iter().find(|s| s.id != o.id && s.contains_world(below, 0.0));
+                let Some(s) = supporter else { panic!("seed {seed}: object {} floats at z = {}", o.id, lo.z) };
+                let top = s.aabb().1.z;
+                assert!(
+                    (top - lo.z).abs() < 1e-4,
+                    "seed {seed}: object {} at {} on {} topped at {top}",
+                    o.id,
+                    lo.z,
+                    s.id
+                );
+            }
+        }
+        eprintln!("{stacked} stacked objects over two scenes");
+        assert!(stacked > 20, "the stacking config stacked only {stacked} objects");
     }
 
     #[test]

@@ -62,13 +62,23 @@ fn sources_lie_within_the_radius_and_frames_are_rendered() {
 
 #[test]
 fn scenes_are_cached_lru() {
+    // Capacity 2 (`cache_scenes`). A cache hit hands out the cached Arc; an evicted scene's Arc is
+    // held only by the caller (strong count 1) and asking again builds a fresh one.
     let mut s = Sampler::new(config(true));
     let a = s.scene(3);
     assert!(Arc::ptr_eq(&a, &s.scene(3)));
-    let _b = s.scene(4);
-    assert!(Arc::ptr_eq(&a, &s.scene(3))); // 3 is most recent now
-    let _c = s.scene(5); // evicts 4
+    let b = s.scene(4);
+    assert!(Arc::ptr_eq(&a, &s.scene(3))); // 3 is most recent now: [4, 3]
+    let c = s.scene(5); // evicts 4, the least recently used: [3, 5]
+    assert_eq!(Arc::strong_count(&b), 1, "4 was evicted");
+    assert_eq!((Arc::strong_count(&a), Arc::strong_count(&c)), (2, 2), "3 and 5 are cached");
+    assert!(Arc::ptr_eq(&a, &s.scene(3))); // [5, 3]
+    let b2 = s.scene(4); // a miss: rebuilt, evicts 5: [3, 4]
+    assert!(!Arc::ptr_eq(&b, &b2));
+    assert_eq!(b.0, b2.0, "a rebuilt scene equals the evicted one");
+    assert_eq!(Arc::strong_count(&c), 1, "5 was evicted");
     assert!(Arc::ptr_eq(&a, &s.scene(3)));
+    assert!(Arc::ptr_eq(&b2, &s.scene(4)));
     assert_eq!(a.0, Scene::generate(3, &config(true).scene));
 }
 

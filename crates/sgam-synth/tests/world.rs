@@ -38,41 +38,50 @@ fn same_seed_gives_identical_scene_and_bytes() {
     assert_ne!(bits(&fa), bits(&fc));
 }
 
-/// Independent reference: march along the ray and bisect on `Object::contains_world`.
+/// Independent reference for one object: march along the ray inside its bounding box and bisect
+/// on `Object::contains_world`; the entry parameter `t`, or `None` when the ray misses it before
+/// `t_max`.
+fn marched_hit(obj: &Object, o: Vec3, d: Vec3, t_max: f32) -> Option<f32> {
+    let (lo, hi) = obj.aabb();
+    // slab test
+    let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
+    for k in 0..3 {
+        let (a, b) = ((lo[k] - o[k]) / d[k], (hi[k] - o[k]) / d[k]);
+        t0 = t0.max(a.min(b));
+        t1 = t1.min(a.max(b));
+    }
+    if t0 > t1 || t0 >= t_max {
+        return None;
+    }
+    let step = 0.002;
+    let mut t = t0;
+    while t <= t1 {
+        if obj.contains_world(o + d * t, 0.0) {
+            let (mut a, mut b) = (t - step, t);
+            for _ in 0..30 {
+                let m = 0.5 * (a + b);
+                if obj.contains_world(o + d * m, 0.0) {
+                    b = m;
+                } else {
+                    a = m;
+                }
+            }
+            return Some(b);
+        }
+        t += step;
+    }
+    None
+}
+
+/// Independent reference: the nearest marched hit over the ground and every object, with its id.
 fn marched_depth(scene: &Scene, o: Vec3, d: Vec3) -> (f32, u32) {
     let t_ground = (scene.ground_z_m - o.z) / d.z;
-    let mut best = (t_ground, 0u32);
+    let mut best = (t_ground, GROUND_ID);
     for obj in &scene.objects {
-        let (lo, hi) = obj.aabb();
-        // slab test
-        let (mut t0, mut t1) = (0.0f32, f32::INFINITY);
-        for k in 0..3 {
-            let (a, b) = ((lo[k] - o[k]) / d[k], (hi[k] - o[k]) / d[k]);
-            t0 = t0.max(a.min(b));
-            t1 = t1.min(a.max(b));
-        }
-        if t0 > t1 || t0 >= best.0 {
-            continue;
-        }
-        let step = 0.002;
-        let mut t = t0;
-        while t <= t1 {
-            if obj.contains_world(o + d * t, 0.0) {
-                let (mut a, mut b) = (t - step, t);
-                for _ in 0..30 {
-                    let m = 0.5 * (a + b);
-                    if obj.contains_world(o + d * m, 0.0) {
-                        b = m;
-                    } else {
-                        a = m;
-                    }
-                }
-                if b < best.0 {
-                    best = (b, obj.id);
-                }
-                break;
+        if let Some(t) = marched_hit(obj, o, d, best.0) {
+            if t < best.0 {
+                best = (t, obj.id);
             }
-            t += step;
         }
     }
     best
@@ -84,7 +93,7 @@ fn depth_equals_independent_ray_marching_at_random_pixels() {
     let renderer = Renderer::new(&scene);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
     let cams = dataset_cameras(DATASET_GRID, 64);
-    let mut object_pixels = 0;
+    let (mut object_pixels, mut id_mismatches) = (0, 0);
     for trial in 0..6 {
         let cam = cams[rng.random_range(0..cams.len())].camera;
         let frame = renderer.render(&cam, &RenderConfig { samples_per_pixel: 1, ..RenderConfig::default() });
@@ -98,8 +107,21 @@ fn depth_equals_independent_ray_marching_at_random_pixels() {
             // Planar depth = ray parameter for a z = 1 camera ray.
             assert!((got - t).abs() < 2e-3, "trial {trial} pixel ({u},{v}): rendered {got} vs marched {t}");
             if got_id != id {
-                // Only allowed at a grazing contact where both distances agree.
-                assert!((got - t).abs() < 2e-3);
+                // Only allowed where two surfaces meet (an object touching the ground or another
+                // object): the ray must then also reach the rendered id's surface at that depth.
+                id_mismatches += 1;
+                let t_other = if got_id == GROUND_ID {
+                    Some((scene.ground_z_m - o.z) / d.z)
+                } else {
+                    let obj = scene.objects.get(got_id.wrapping_sub(1) as usize);
+                    assert!(obj.is_some_and(|x| x.id == got_id), "pixel ({u},{v}): id {got_id} names no object");
+                    obj.and_then(|x| marched_hit(x, o, d, f32::INFINITY))
+                };
+                let t_other = t_other.unwrap_or(f32::INFINITY);
+                assert!(
+                    (t_other - t).abs() < 2e-3,
+                    "trial {trial} pixel ({u},{v}): rendered id {got_id} is {t_other} away, marched id {id} at {t}"
+                );
             }
             if id != GROUND_ID {
                 object_pixels += 1;
@@ -107,6 +129,9 @@ fn depth_equals_independent_ray_marching_at_random_pixels() {
         }
     }
     assert!(object_pixels > 40, "too few object pixels tested: {object_pixels}");
+    eprintln!("{object_pixels} object pixels, {id_mismatches} id mismatches");
+    // Contacts cover a sliver of the image: a handful of the 360 pixels at most (measured: 0).
+    assert!(id_mismatches <= 3, "{id_mismatches} of 360 pixels carry another object's id");
 }
 
 fn single_object_scene(shape: Shape, rotation: Mat3, centre: Vec3) -> Scene {

@@ -2,7 +2,7 @@
 
 use std::time::Instant;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::{Args, ValueEnum};
 use serde_json::json;
 use sgam_core::{trajectory, Camera, RgbdFrame};
@@ -163,9 +163,9 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
 
 /// Runs `sgam bench`.
 pub fn run(args: BenchArgs) -> Result<()> {
-    if args.iterations == 0 || args.res < 16 {
-        bail!("need --iterations >= 1 and --res >= 16");
-    }
+    // frames are rendered up front and held in memory: both bounds keep that within the machine
+    crate::guard::in_range("--iterations", args.iterations, 1..=1000)?;
+    crate::guard::in_range("--res", args.res, 16..=crate::generate::MAX_RES)?;
     match args.subject {
         Subject::Refine => return bench_refine(&args),
         Subject::Step => return bench_step(&args),

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::Args;
 use sgam_model::ModelConfig;
 
@@ -32,13 +32,14 @@ pub struct ConvertArgs {
 
 /// Runs `sgam convert-checkpoint`.
 pub fn run(args: ConvertArgs) -> Result<()> {
-    if !args.input.is_file() {
-        bail!("{}: no such checkpoint file", args.input.display());
-    }
+    crate::guard::check_input_file("checkpoint", &args.input)?;
+    crate::guard::check_output_file("output", &args.output)?;
     let config = match (&args.model_config, args.codebook) {
         (Some(path), _) => Some(crate::train::read_model_config(path)?),
-        (None, Some(0)) => bail!("--codebook must be at least 1"),
-        (None, Some(n)) => Some(ModelConfig { n_embed: n, ..ModelConfig::paper() }),
+        (None, Some(n)) => {
+            crate::guard::in_range("--codebook", n, 1..=sgam_model::config::MAX_CODEBOOK)?;
+            Some(ModelConfig { n_embed: n, ..ModelConfig::paper() })
+        }
         (None, None) => None,
     };
     // the library's errors name the checkpoint (or the output file)

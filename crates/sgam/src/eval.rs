@@ -69,6 +69,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
         }
         EvalCommand::Table(a) => crate::eval_table::run(&a),
         EvalCommand::OneStep(a) => {
+            a.validate()?;
             let line = match a.refiner {
                 crate::generate::RefinerKind::Oracle => {
                     bail!("the oracle is exact by construction; evaluate null or a model")
@@ -92,6 +93,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
             Ok(())
         }
         EvalCommand::Mesh(a) => {
+            crate::guard::positive("--max-distance", a.max_distance, 1000.0)?;
             let ma = sgam_io::read_ply(&a.a)?;
             let mb = sgam_io::read_ply(&a.b)?;
             if ma.positions.is_empty() || mb.triangles.is_empty() || ma.triangles.is_empty() {
@@ -151,6 +153,20 @@ pub struct OneStepArgs {
     /// Print only the JSON line.
     #[arg(long)]
     pub json: bool,
+}
+
+impl OneStepArgs {
+    /// Checks every option; errors name the option and the accepted range.
+    pub fn validate(&self) -> Result<()> {
+        use crate::guard::in_range;
+        in_range("--scenes", self.scenes, 1..=10_000)?;
+        in_range("--views", self.views, 1..=10_000)?;
+        in_range("--res", self.res, 16..=crate::generate::MAX_RES)?;
+        if let Some(m) = &self.model {
+            crate::guard::check_input_file("--model", m)?;
+        }
+        Ok(())
+    }
 }
 
 /// Accumulates per-image metrics.

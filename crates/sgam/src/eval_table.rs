@@ -98,6 +98,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
         eprintln!("== {}", row.name);
         let wa = WorldArgs {
             seeds: a.seeds,
+            first_seed: crate::generate::HELD_OUT_SEED_BASE,
             steps: a.steps,
             trajectory: crate::generate::TrajectoryKind::Zigzag,
             step: None,

@@ -8,6 +8,7 @@ use clap::Args;
 use serde::Serialize;
 use sgam_map::{TsdfConfig, TsdfMap};
 
+use crate::guard::{check_output_file, in_range, positive};
 use crate::progress;
 
 /// Arguments of `sgam fuse`.
@@ -116,15 +117,40 @@ pub fn save_map(path: &Path, map: &TsdfMap) -> Result<()> {
     Ok(())
 }
 
+impl FuseArgs {
+    /// Checks every option (map parameters in range: the voxel-size floor keeps memory within
+    /// the machine) and every output path, before any frame is read. Errors name the option and
+    /// the accepted range.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--voxel-size", self.voxel_size, sgam_map::MIN_VOXEL_M..=sgam_map::MAX_VOXEL_M)?;
+        positive("--trunc-voxels", self.trunc_voxels, sgam_map::MAX_TRUNC_VOXELS)?;
+        in_range("--depth-min", self.depth_min, 0.0..=sgam_map::MAX_DEPTH_M)?;
+        in_range("--depth-max", self.depth_max, 0.0..=sgam_map::MAX_DEPTH_M)?;
+        if self.depth_min >= self.depth_max {
+            bail!("--depth-min {} must be below --depth-max {}", self.depth_min, self.depth_max);
+        }
+        in_range("--weight-threshold", self.weight_threshold, 0.0..=1e6)?;
+        if !matches!(
+            self.out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref(),
+            Some("ply" | "obj" | "glb")
+        ) {
+            bail!("--out {}: unknown mesh format (use .ply, .obj or .glb)", self.out.display());
+        }
+        check_output_file("--out", &self.out)?;
+        if let Some(p) = &self.save_map {
+            check_output_file("--save-map", p)?;
+        }
+        if let Some(p) = &self.stats_json {
+            check_output_file("--stats-json", p)?;
+        }
+        Ok(())
+    }
+}
+
 /// Runs `sgam fuse`.
 pub fn run(args: FuseArgs) -> Result<()> {
-    // check the output format before spending time on fusion
-    if !matches!(
-        args.out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref(),
-        Some("ply" | "obj" | "glb")
-    ) {
-        bail!("{}: unknown mesh format (use .ply, .obj or .glb)", args.out.display());
-    }
+    // check options and outputs before spending time on fusion
+    args.validate()?;
     let config = TsdfConfig {
         voxel_size_m: args.voxel_size,
         trunc_voxels: args.trunc_voxels,

@@ -1,7 +1,6 @@
 //! `sgam generate`: the SGAM unrolling pipeline from a seed frame along a trajectory, with
 //! snapshots for resuming, and the run's outputs (frames, poses, mesh, fly-through).
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -14,6 +13,7 @@ use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Sce
 
 use crate::fuse::{median, save_map, write_mesh};
 use crate::generator::{GeneratorConfig, StepTimings, WorldGenerator};
+use crate::guard::{in_range, positive, RunLock};
 use crate::keyframes::Keyframes;
 use crate::progress;
 use crate::refiners::{NullRefiner, OracleRefiner};
@@ -164,14 +164,186 @@ pub struct GenerateArgs {
     /// Also write 16-bit PNG depth in millimetres (depth/NNNNN.png).
     #[arg(long)]
     pub depth_png: bool,
-    /// Skip the fly-through GIF.
+    /// Skip the fly-through videos (flythrough.gif and flythrough.mp4).
     #[arg(long)]
     pub no_video: bool,
+    /// Skip flythrough.mp4 (H.264; see the README on licensing); the GIF is still written.
+    #[arg(long)]
+    #[serde(default)]
+    pub no_mp4: bool,
+    /// Also write orbit.mp4: one turn around the final mesh.
+    #[arg(long)]
+    #[serde(default)]
+    pub orbit_video: bool,
+    /// Serve the viewer on 127.0.0.1 while the world grows (mesh and poses refresh every
+    /// --view-every steps; the results are unchanged).
+    #[arg(long)]
+    #[serde(skip)]
+    pub view: bool,
+    /// Port of --view (a taken port falls back to a free one).
+    #[arg(long, default_value_t = crate::view::DEFAULT_PORT)]
+    #[serde(skip)]
+    pub view_port: u16,
+    /// Steps between mesh refreshes of --view.
+    #[arg(long, default_value_t = crate::live::DEFAULT_EVERY)]
+    #[serde(skip)]
+    pub view_every: usize,
     /// Stop after this many steps of this invocation (for tests of --resume; the run stays
     /// resumable).
     #[arg(long, hide = true)]
     #[serde(skip)]
     pub stop_after: Option<usize>,
+    /// Replace the outputs of an earlier run in --out (by default a folder that holds files is
+    /// refused).
+    #[arg(long, conflicts_with = "resume")]
+    #[serde(skip)]
+    pub force: bool,
+}
+
+/// Largest image side of `sgam generate` (keyframe cache and model activations stay within a
+/// few GB).
+pub const MAX_RES: u32 = 2048;
+/// Most generation steps of one run.
+pub const MAX_STEPS: usize = 1_000_000;
+/// Largest `--grid` side.
+pub const MAX_GRID: usize = 1000;
+/// Farthest a camera may get from the world origin, metres.
+pub const MAX_EXTENT_M: f32 = 100_000.0;
+/// Largest depth a 16-bit millimetre PNG holds, metres.
+const DEPTH_PNG_MAX_M: f32 = sgam_io::DEPTH_PNG_MAX_MM as f32 / 1000.0;
+
+/// The files and folders a run writes (what `--force` removes before a new run).
+pub const RUN_OUTPUTS: &[&str] = &[
+    "rgb",
+    "depth",
+    "snapshot.bin",
+    "mesh.ply",
+    "mesh.glb",
+    "map.bin",
+    "transforms.json",
+    "flythrough.gif",
+    "flythrough.mp4",
+    "orbit.mp4",
+    "world.html",
+    "overview.png",
+    "strip.png",
+    "run.json",
+    "mesh-*",
+];
+
+impl GenerateArgs {
+    /// Checks every option: numbers finite and in range, with upper bounds that keep memory
+    /// within the machine, and the combinations that would otherwise be silently ignored.
+    /// Errors name the option and the accepted range. Runs for new runs and on the arguments a
+    /// snapshot restores.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--res", self.res, 16..=MAX_RES)?;
+        in_range("--grid", self.grid, 1..=MAX_GRID)?;
+        in_range("--steps", self.steps, 1..=MAX_STEPS)?;
+        if let Some(step) = self.step {
+            positive("--step", step, 1000.0)?;
+        }
+        positive("--radius", self.radius, 10_000.0)?;
+        in_range("--temperature", self.temperature, 0.0..=100.0)?;
+        in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
+        if let Some(k) = self.k_sources {
+            in_range("--k-sources", k, 1..=64)?;
+        }
+        if let Some(r) = self.source_radius {
+            positive("--source-radius", r, 1000.0)?;
+        }
+        if let Some(v) = self.voxel_size {
+            in_range("--voxel-size", v, sgam_map::MIN_VOXEL_M..=sgam_map::MAX_VOXEL_M)?;
+        }
+        if let Some(t) = self.trunc_voxels {
+            positive("--trunc-voxels", t, sgam_map::MAX_TRUNC_VOXELS)?;
+        }
+        in_range("--depth-max", self.depth_max, 0.1..=sgam_map::MAX_DEPTH_M)?;
+        if let Some(c) = self.weight_cap {
+            in_range("--weight-cap", c, 1.0..=1e6)?;
+        }
+        in_range("--snapshot-every", self.snapshot_every, 1..=MAX_STEPS)?;
+        in_range("--mesh-every", self.mesh_every, 0..=MAX_STEPS)?;
+        if self.view {
+            in_range("--view-every", self.view_every, 1..=MAX_STEPS)?;
+        }
+        if let Some(n) = self.stop_after {
+            in_range("--stop-after", n, 1..=MAX_STEPS)?;
+        }
+        if self.depth_png && self.depth_max > DEPTH_PNG_MAX_M {
+            bail!(
+                "--depth-png stores millimetres in 16 bits (at most {DEPTH_PNG_MAX_M} m) but --depth-max is {} m; \
+                 lower --depth-max or leave out --depth-png (depth/NNNNN.npy holds every depth)",
+                self.depth_max
+            );
+        }
+        if let (Some(rgb), Some(k)) = (&self.seed_rgb, self.intrinsics) {
+            let (w, h) = sgam_io::image_size(rgb)?;
+            check_intrinsics(k, w, h)?;
+        }
+        if self.seed_rgb.is_none() {
+            for (given, name) in
+                [(self.seed_depth.is_some(), "--seed-depth"), (self.intrinsics.is_some(), "--intrinsics")]
+            {
+                if given {
+                    bail!("{name} describes an RGB seed: it needs --seed-rgb");
+                }
+            }
+        }
+        let seeds: Vec<&str> = [
+            (self.seed_rgb.is_some(), "--seed-rgb"),
+            (self.seed_template.is_some(), "--seed-template"),
+            (self.seed_google_earth.is_some(), "--seed-google-earth"),
+        ]
+        .into_iter()
+        .filter_map(|(given, name)| given.then_some(name))
+        .collect();
+        if seeds.len() > 1 {
+            bail!("{} are different seeds: give one", seeds.join(" and "));
+        }
+        match (self.trajectory, &self.trajectory_file) {
+            (TrajectoryKind::File, None) => bail!("--trajectory file needs --trajectory-file PATH"),
+            (kind, Some(_)) if kind != TrajectoryKind::File => {
+                bail!("--trajectory-file is read only with --trajectory file")
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+}
+
+/// Checks of the command line that the arguments alone cannot tell: options given with
+/// `--resume` (a resumed run keeps its own) and `--model` with a stand-in refiner. `given` are
+/// the options written on the command line. (Evaluation commands that build arguments
+/// themselves skip this.)
+pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
+    if args.resume.is_some() {
+        let ignored: Vec<&str> = given
+            .iter()
+            .map(String::as_str)
+            .filter(|o| !matches!(*o, "--resume" | "--stop-after" | "--view" | "--view-port" | "--view-every"))
+            .collect();
+        if !ignored.is_empty() {
+            bail!(
+                "--resume continues a run with the options it was started with; {} cannot be changed (leave {} out, \
+                 or start a new run)",
+                ignored.join(", "),
+                if ignored.len() == 1 { "it" } else { "them" }
+            );
+        }
+    }
+    let stand_in = args.no_refine || matches!(args.refiner, RefinerKind::Null | RefinerKind::Oracle);
+    if stand_in && args.model.is_some() {
+        bail!(
+            "--model is used only by the learned refiner; this run uses a stand-in ({}) and would ignore it",
+            if args.no_refine {
+                "--no-refine".to_string()
+            } else {
+                format!("--refiner {:?}", args.refiner).to_lowercase()
+            }
+        );
+    }
+    Ok(())
 }
 
 fn parse_intrinsics(s: &str) -> std::result::Result<[f32; 4], String> {
@@ -246,9 +418,6 @@ fn load_seed(args: &GenerateArgs) -> Result<Seed> {
             name: dir.display().to_string(),
         });
     }
-    if args.res < 16 {
-        bail!("--res {} is too small (at least 16)", args.res);
-    }
     let scene = Scene::generate(args.seed_scene, &SceneConfig::default());
     let renderer = Renderer::new(&scene);
     let camera = synthetic_seed_camera(args.res);
@@ -260,6 +429,29 @@ fn load_seed(args: &GenerateArgs) -> Result<Seed> {
         preset: CLEVR,
         name: format!("synthetic scene {}", args.seed_scene),
     })
+}
+
+/// `--intrinsics` must describe a real camera for a `w x h` image: fields of view between 0.1
+/// and 179 degrees (focal lengths `0.005..=500` times the image side) and the principal point
+/// on the image.
+fn check_intrinsics([fx, fy, cx, cy]: [f32; 4], w: u32, h: u32) -> Result<()> {
+    let (w, h) = (w as f32, h as f32);
+    for (name, f, side) in [("fx", fx, w), ("fy", fy, h)] {
+        if !(f >= 0.005 * side && f <= 500.0 * side) {
+            bail!(
+                "--intrinsics {name} {f} is out of range for a {side} px image side: accepted {}..={} px \
+                 (fields of view from 0.1 to 179 degrees)",
+                0.005 * side,
+                500.0 * side
+            );
+        }
+    }
+    for (name, c, side) in [("cx", cx, w), ("cy", cy, h)] {
+        if !(0.0..=side).contains(&c) {
+            bail!("--intrinsics {name} {c} puts the principal point off the image: accepted 0..={side} px");
+        }
+    }
+    Ok(())
 }
 
 /// The camera of synthetic seeds: the dataset's first grid camera (-20, -20), looking down at
@@ -321,6 +513,15 @@ fn build_trajectory(args: &GenerateArgs, seed: &Seed) -> Result<Vec<Camera>> {
     if poses.len() < 2 {
         bail!("the trajectory has no pose after the seed (use --steps >= 1)");
     }
+    if let Some((i, p)) =
+        poses.iter().enumerate().find(|(_, p)| !(p.is_finite() && p.translation.abs().max_element() <= MAX_EXTENT_M))
+    {
+        bail!(
+            "pose {i} of the trajectory lies at {} m, beyond the {MAX_EXTENT_M} m the map covers; use a smaller \
+             --step, --radius or --steps",
+            p.translation
+        );
+    }
     Ok(poses.into_iter().map(|p| Camera::new(seed.camera.intrinsics, p)).collect())
 }
 
@@ -351,45 +552,118 @@ struct SnapshotState {
     /// Keyframes (= steps done + 1 for the seed).
     cameras: Vec<Camera>,
     timings: Vec<StepTimings>,
+    /// CRC-32 of the model file the run uses (`None` for the stand-ins): a resumed run refuses a
+    /// file that changed since.
+    #[serde(default)]
+    model_crc32: Option<u32>,
 }
 
 const SNAPSHOT_MAGIC: &[u8; 8] = b"SGAMSNAP";
+/// Format of `snapshot.bin`:
+/// ```text
+/// magic "SGAMSNAP" | u32 version (2) | u64 n | n bytes of SnapshotState JSON | map (sgam-map format)
+/// | u32 CRC-32 (IEEE) of every preceding byte
+/// ```
+/// (Version 1 had no version field and no checksum over the state: a flipped bit changed the
+/// run silently.)
+const SNAPSHOT_VERSION: u32 = 2;
 
 fn write_snapshot(dir: &Path, state: &SnapshotState, map: &TsdfMap) -> Result<()> {
     let json = serde_json::to_vec(state)?;
-    let mut map_bytes = Vec::new();
-    map.write_to(&mut map_bytes).context("serialising the map")?;
-    sgam_io::write_atomic(&dir.join("snapshot.bin"), |w| {
-        use std::io::Write;
-        w.write_all(SNAPSHOT_MAGIC)?;
-        w.write_all(&(json.len() as u64).to_le_bytes())?;
-        w.write_all(&json)?;
-        w.write_all(&map_bytes)
-    })?;
+    let mut bytes = Vec::with_capacity(json.len() + 64);
+    bytes.extend_from_slice(SNAPSHOT_MAGIC);
+    bytes.extend_from_slice(&SNAPSHOT_VERSION.to_le_bytes());
+    bytes.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    bytes.extend_from_slice(&json);
+    map.write_to(&mut bytes).context("serialising the map")?;
+    let crc = crc32fast::hash(&bytes);
+    bytes.extend_from_slice(&crc.to_le_bytes());
+    sgam_io::write_atomic(&dir.join("snapshot.bin"), |w| std::io::Write::write_all(w, &bytes))?;
     Ok(())
 }
 
+/// Parses `snapshot.bin` bytes (`path` names the file in errors): format version, checksum over
+/// the whole file, the state's JSON, the map.
+fn parse_snapshot(path: &Path, bytes: &[u8]) -> Result<(SnapshotState, TsdfMap)> {
+    let bad = |what: String| anyhow::anyhow!("{}: {what}", path.display());
+    if bytes.len() < 8 || &bytes[..8] != SNAPSHOT_MAGIC {
+        return Err(bad("not an sgam snapshot".into()));
+    }
+    if bytes.len() < 24 {
+        return Err(bad(format!("truncated ({} bytes)", bytes.len())));
+    }
+    let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
+    if version != SNAPSHOT_VERSION {
+        let v1 = u64::from_le_bytes(bytes[8..16].try_into()?) as usize + 16 <= bytes.len() && bytes[16] == b'{';
+        return Err(bad(if v1 {
+            format!(
+                "snapshot format 1 (written by an older sgam, without a checksum over the run's state); this build \
+                 resumes format {SNAPSHOT_VERSION} only"
+            )
+        } else {
+            format!("snapshot format version {version} (this build reads {SNAPSHOT_VERSION})")
+        }));
+    }
+    let body = bytes.len() - 4;
+    let stored = u32::from_le_bytes(bytes[body..].try_into()?);
+    let computed = crc32fast::hash(&bytes[..body]);
+    if stored != computed {
+        return Err(bad(format!(
+            "checksum mismatch (stored {stored:#010x}, computed {computed:#010x}): the file is corrupt"
+        )));
+    }
+    let len = u64::from_le_bytes(bytes[12..20].try_into()?);
+    if len > (body - 20) as u64 {
+        return Err(bad(format!("corrupt header (state of {len} bytes in a {} byte file)", bytes.len())));
+    }
+    let json_end = 20 + len as usize;
+    let state: SnapshotState =
+        serde_json::from_slice(&bytes[20..json_end]).map_err(|e| bad(format!("corrupt state: {e}")))?;
+    let map = TsdfMap::read_from(&mut &bytes[json_end..body]).map_err(|e| bad(format!("corrupt map: {e}")))?;
+    Ok((state, map))
+}
+
+/// Reads and validates `dir/snapshot.bin`: the file ([`parse_snapshot`]), then its content (the
+/// arguments in range, rigid finite cameras of one size, one timing per step, the frames on
+/// disk).
 fn read_snapshot(dir: &Path) -> Result<(SnapshotState, TsdfMap)> {
     let path = dir.join("snapshot.bin");
-    let mut f = std::io::BufReader::new(
-        std::fs::File::open(&path).with_context(|| format!("{}: no snapshot to resume from", path.display()))?,
-    );
-    let mut magic = [0u8; 8];
-    f.read_exact(&mut magic).with_context(|| format!("{}: truncated", path.display()))?;
-    if &magic != SNAPSHOT_MAGIC {
-        bail!("{}: not an sgam snapshot", path.display());
+    let bytes = match std::fs::read(&path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!("{}: no snapshot to resume from (is {} a run folder?)", path.display(), dir.display())
+        }
+        Err(e) => return Err(e).with_context(|| format!("{}: cannot read", path.display())),
+    };
+    let (state, map) = parse_snapshot(&path, &bytes)?;
+    let bad = |what: String| anyhow::anyhow!("{}: {what}", path.display());
+    if state.version != SNAPSHOT_VERSION {
+        return Err(bad(format!("state version {} (expected {SNAPSHOT_VERSION})", state.version)));
     }
-    let mut len = [0u8; 8];
-    f.read_exact(&mut len).with_context(|| format!("{}: truncated", path.display()))?;
-    let len = u64::from_le_bytes(len) as usize;
-    if len > 1 << 30 {
-        bail!("{}: corrupt header", path.display());
+    state.args.validate().map_err(|e| bad(format!("stored arguments: {e:#}")))?;
+    let Some(first) = state.cameras.first() else { return Err(bad("no keyframe".into())) };
+    if state.cameras.len() > state.args.steps + 1 || state.timings.len() + 1 != state.cameras.len() {
+        return Err(bad(format!(
+            "{} keyframes and {} step timings for a run of {} steps",
+            state.cameras.len(),
+            state.timings.len(),
+            state.args.steps
+        )));
     }
-    let mut json = vec![0u8; len];
-    f.read_exact(&mut json).with_context(|| format!("{}: truncated", path.display()))?;
-    let state: SnapshotState =
-        serde_json::from_slice(&json).with_context(|| format!("{}: corrupt state", path.display()))?;
-    let map = TsdfMap::read_from(&mut f).with_context(|| format!("{}: corrupt map", path.display()))?;
+    for (i, c) in state.cameras.iter().enumerate() {
+        let rigid = c.world_from_camera.is_finite()
+            && sgam_core::Rigid3::try_from_rows(c.world_from_camera.to_rows()).is_ok()
+            && c.world_from_camera.translation.abs().max_element() <= MAX_EXTENT_M;
+        if !rigid || c.intrinsics != first.intrinsics {
+            return Err(bad(format!("keyframe {i}: not a rigid pose in range, or another image size")));
+        }
+        let (rgb, depth) = Keyframes::frame_paths(dir, i);
+        for f in [rgb, depth] {
+            if !f.is_file() {
+                return Err(bad(format!("keyframe {i}: {} is missing", f.display())));
+            }
+        }
+    }
     Ok((state, map))
 }
 
@@ -400,29 +674,77 @@ fn next_run_dir() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from("runs/world"))
 }
 
-/// Runs `sgam generate`.
+/// CRC-32 of the model file the run's refiner loads (`--model`, or the bundled model); `None`
+/// for the stand-ins.
+fn model_crc32(args: &GenerateArgs) -> Result<Option<u32>> {
+    if args.no_refine || matches!(args.refiner, RefinerKind::Null | RefinerKind::Oracle) {
+        return Ok(None);
+    }
+    Ok(Some(match &args.model {
+        Some(p) => {
+            crate::guard::check_input_file("--model", p)?;
+            crc32fast::hash(&std::fs::read(p).with_context(|| format!("--model {}: cannot read", p.display()))?)
+        }
+        None => crc32fast::hash(BUNDLED_MODEL),
+    }))
+}
+
+/// Runs `sgam generate`. The run folder is locked for the whole run; a new run needs an empty
+/// folder (or `--force`); a resumed run checks its snapshot and that its model file is the same.
 pub fn run(args: GenerateArgs) -> Result<()> {
     let (args, dir, resumed) = match &args.resume {
         Some(dir) => {
-            let (state, map) = read_snapshot(dir)?;
-            let mut a = state.args;
-            a.stop_after = args.stop_after;
-            (a, dir.clone(), Some(Resume { cameras: state.cameras, timings: state.timings, map }))
+            if !dir.is_dir() {
+                bail!("--resume {}: no such run folder", dir.display());
+            }
+            if !dir.join("snapshot.bin").exists() {
+                bail!("--resume {}: no snapshot.bin to resume from (is it a run folder?)", dir.display());
+            }
+            (args.clone(), dir.clone(), true)
         }
         None => {
+            args.validate()?;
             let dir = args.out.clone().unwrap_or_else(next_run_dir);
-            if dir.join("snapshot.bin").exists() {
-                bail!("{} already holds a run: continue it with --resume {0}, or choose another --out", dir.display());
-            }
-            (args, dir, None)
+            (args, dir, false)
         }
+    };
+    let _lock = RunLock::acquire(&dir)?;
+    crate::guard::remove_stale_temp_files(&dir, &["rgb", "depth"])?;
+    let (args, resumed) = if resumed {
+        let (state, map) = read_snapshot(&dir)?;
+        let mut a = state.args;
+        if let Some(n) = args.stop_after {
+            in_range("--stop-after", n, 1..=MAX_STEPS)?;
+        }
+        a.stop_after = args.stop_after;
+        (a.view, a.view_port, a.view_every) = (args.view, args.view_port, args.view_every);
+        if model_crc32(&a)? != state.model_crc32 {
+            bail!(
+                "{}: the model ({}) is not the file this run started with; resume with that file, or start a new run",
+                dir.display(),
+                a.model.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "bundled".into())
+            );
+        }
+        (a, Some(Resume { cameras: state.cameras, timings: state.timings, map, model_crc32: state.model_crc32 }))
+    } else {
+        let hint = if dir.join("snapshot.bin").exists() {
+            format!("continue it with --resume {}, or ", dir.display())
+        } else {
+            String::new()
+        };
+        crate::guard::claim_empty_folder(&dir, args.force, RUN_OUTPUTS, &hint)?;
+        (args, None)
+    };
+    let stamp = match &resumed {
+        Some(r) => r.model_crc32,
+        None => model_crc32(&args)?,
     };
     let seed = load_seed(&args)?;
     let refiner = if args.no_refine { RefinerKind::Null } else { args.refiner };
     match refiner {
         RefinerKind::Auto | RefinerKind::Null | RefinerKind::Model => match model_refiner(refiner, &args)? {
-            Some(model) => run_with(&args, &dir, resumed, seed, model),
-            None => run_with(&args, &dir, resumed, seed, NullRefiner { fill: !args.no_refine }),
+            Some(model) => run_with(&args, &dir, resumed, stamp, seed, model),
+            None => run_with(&args, &dir, resumed, stamp, seed, NullRefiner { fill: !args.no_refine }),
         },
         RefinerKind::Oracle => {
             let Some(renderer) = seed.renderer.clone() else {
@@ -430,7 +752,7 @@ pub fn run(args: GenerateArgs) -> Result<()> {
                     "--refiner oracle needs a synthetic seed (no --seed-rgb / --seed-template / --seed-google-earth)"
                 );
             };
-            run_with(&args, &dir, resumed, seed, OracleRefiner::new(renderer, RenderConfig::default()))
+            run_with(&args, &dir, resumed, stamp, seed, OracleRefiner::new(renderer, RenderConfig::default()))
         }
     }
 }
@@ -475,9 +797,31 @@ struct Resume {
     cameras: Vec<Camera>,
     timings: Vec<StepTimings>,
     map: TsdfMap,
+    model_crc32: Option<u32>,
 }
 
-fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>, seed: Seed, refiner: R) -> Result<()> {
+/// Writes `depth/NNNNN.png` (millimetres) of keyframe `index`; depth beyond what 16 bits hold is
+/// stored as invalid (0), not clipped to a wrong value.
+fn write_depth_png(dir: &Path, index: usize, depth_m: &sgam_core::Image<f32>) -> Result<()> {
+    let (_, path) = Keyframes::frame_paths(dir, index);
+    let mut depth = depth_m.clone();
+    for d in &mut depth.data {
+        if *d > DEPTH_PNG_MAX_M {
+            *d = 0.0;
+        }
+    }
+    sgam_io::write_depth_png_mm(&path.with_extension("png"), &depth)?;
+    Ok(())
+}
+
+fn run_with<R: Refiner>(
+    args: &GenerateArgs,
+    dir: &Path,
+    resume: Option<Resume>,
+    model_crc32: Option<u32>,
+    seed: Seed,
+    refiner: R,
+) -> Result<()> {
     let cameras = build_trajectory(args, &seed)?;
     let p = seed.preset;
     let tsdf = TsdfConfig {
@@ -503,12 +847,26 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
         }
         (r.map, r.timings)
     } else {
-        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create the run folder", dir.display()))?;
         (TsdfMap::new(tsdf), Vec::new())
     };
     let mut gen = WorldGenerator::new(map, keyframes, refiner, config);
+    let snapshot = |gen: &WorldGenerator<R>, timings: &[StepTimings]| {
+        let state = SnapshotState {
+            version: SNAPSHOT_VERSION,
+            args: args.clone(),
+            cameras: gen.keyframes.cameras().to_vec(),
+            timings: timings.to_vec(),
+            model_crc32,
+        };
+        write_snapshot(dir, &state, &gen.map)
+    };
     if !resumed {
         gen.seed(&cameras[0], seed.frame.clone())?;
+        if args.depth_png {
+            write_depth_png(dir, 0, &gen.keyframes.frame(0)?.depth_m)?;
+        }
+        // a snapshot from the start: a run killed before its first --snapshot-every is resumable
+        snapshot(&gen, &timings)?;
     }
     let done = gen.keyframes.len();
     let (total, mut greedy) = if args.trajectory == TrajectoryKind::Greedy {
@@ -532,6 +890,7 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
         seed.camera.intrinsics.height,
         dir.display()
     );
+    let mut live = crate::live::LiveView::start_if(args.view, dir, args.view_port, args.view_every)?;
     let pb = progress::bar(total as u64 - 1, "steps");
     pb.set_position((done - 1) as u64);
     let start = Instant::now();
@@ -546,27 +905,20 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
         };
         let t = gen.step(&camera).with_context(|| format!("step {i}"))?;
         timings.push(t);
+        live.after_step(i, total, &mut gen.map, gen.keyframes.cameras());
         this_run += 1;
         pb.inc(1);
         pb.set_message(format!("{:.0} ms/step, {:.0}% invented", t.total_ms, 100.0 * t.missing_fraction));
         if args.depth_png {
-            let (_, depth) = Keyframes::frame_paths(dir, i);
-            let f = gen.keyframes.frame(i)?;
-            sgam_io::write_depth_png_mm(&depth.with_extension("png"), &f.depth_m)?;
+            write_depth_png(dir, i, &gen.keyframes.frame(i)?.depth_m)?;
         }
         if args.mesh_every > 0 && i % args.mesh_every == 0 {
             write_mesh(&dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh(1.0))?;
         }
         let finished = i + 1 == total;
         let stopping = args.stop_after.is_some_and(|n| this_run >= n);
-        if finished || stopping || i % args.snapshot_every.max(1) == 0 {
-            let state = SnapshotState {
-                version: 1,
-                args: args.clone(),
-                cameras: gen.keyframes.cameras().to_vec(),
-                timings: timings.clone(),
-            };
-            write_snapshot(dir, &state, &gen.map)?;
+        if finished || stopping || i % args.snapshot_every == 0 {
+            snapshot(&gen, &timings)?;
         }
         if stopping && !finished {
             pb.finish_and_clear();
@@ -576,7 +928,9 @@ fn run_with<R: Refiner>(args: &GenerateArgs, dir: &Path, resume: Option<Resume>,
     }
     pb.finish_and_clear();
     let wall_s = start.elapsed().as_secs_f64();
-    finish_outputs(args, dir, &mut gen, &timings, wall_s)
+    finish_outputs(args, dir, &mut gen, &timings, wall_s)?;
+    live.finish(gen.keyframes.cameras());
+    Ok(())
 }
 
 /// Writes the end-of-run outputs: mesh (PLY + GLB), transforms.json, fly-through, run.json.
@@ -606,6 +960,12 @@ fn finish_outputs<R: Refiner>(
     if !args.no_video {
         write_flythrough(dir, cams.len())?;
     }
+    if !args.no_video && !args.no_mp4 {
+        crate::video::write_flythrough_mp4(dir, cams.len())?;
+    }
+    if args.orbit_video {
+        crate::video::write_orbit_mp4(&dir.join("orbit.mp4"), &gen.map, &mesh, crate::view::up_world(&cams[0]))?;
+    }
     if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams[0], 1280, 800) {
         let img = crate::overview::render_overview(&gen.map, &cam, near, far);
         sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
@@ -629,6 +989,7 @@ fn finish_outputs<R: Refiner>(
     });
     let bytes = serde_json::to_vec_pretty(&summary)?;
     sgam_io::write_atomic(&dir.join("run.json"), |w| std::io::Write::write_all(w, &bytes))?;
+    let page = crate::view::write_world_html(dir, crate::view::DEFAULT_EMBED_LIMIT_BYTES)?;
     eprintln!(
         "done: {} steps, median {:.1} ms/step (refine {:.1}, map {:.1})",
         timings.len(),
@@ -641,6 +1002,17 @@ fn finish_outputs<R: Refiner>(
     if !args.no_video {
         eprintln!("  fly-through: {}", dir.join("flythrough.gif").display());
     }
+    if !args.no_video && !args.no_mp4 {
+        eprintln!("  video:       {}", dir.join("flythrough.mp4").display());
+    }
+    if args.orbit_video {
+        eprintln!("  orbit:       {}", dir.join("orbit.mp4").display());
+    }
+    eprintln!(
+        "  viewer:      {}  (open it in a browser{})",
+        page.path.display(),
+        if page.mesh_embedded { String::new() } else { format!("; large mesh: sgam view {} --serve", dir.display()) }
+    );
     eprintln!("  overview:    {}  (and strip.png: 6 frames)", dir.join("overview.png").display());
     eprintln!("  poses:       {}  (nerfstudio / instant-ngp)", dir.join("transforms.json").display());
     eprintln!("  frames:      {}/rgb, {}/depth", dir.display(), dir.display());
@@ -680,5 +1052,59 @@ impl GenerateArgs {
         a.model = model;
         a.regenerate_observed = regenerate_observed;
         a
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A valid `snapshot.bin` of a one-keyframe run, made once.
+    fn valid_snapshot() -> &'static [u8] {
+        static BYTES: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
+        BYTES.get_or_init(|| {
+            let tmp = tempfile::tempdir().unwrap();
+            let state = SnapshotState {
+                version: SNAPSHOT_VERSION,
+                args: GenerateArgs::for_refiner(RefinerKind::Null, None, false),
+                cameras: vec![synthetic_seed_camera(32)],
+                timings: vec![],
+                model_crc32: Some(7),
+            };
+            write_snapshot(tmp.path(), &state, &TsdfMap::new(TsdfConfig::default())).unwrap();
+            std::fs::read(tmp.path().join("snapshot.bin")).unwrap()
+        })
+    }
+
+    #[test]
+    fn a_snapshot_round_trips_and_default_arguments_are_valid() {
+        let (state, map) = parse_snapshot(Path::new("snapshot.bin"), valid_snapshot()).unwrap();
+        assert_eq!((state.cameras.len(), state.model_crc32, map.block_count()), (1, Some(7), 0));
+        state.args.validate().unwrap();
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 128, ..ProptestConfig::default() })]
+
+        #[test]
+        fn arbitrary_bytes_never_panic(mut bytes in prop::collection::vec(any::<u8>(), 0..256), magic in any::<bool>()) {
+            if magic && bytes.len() >= 12 {
+                bytes[..8].copy_from_slice(SNAPSHOT_MAGIC);
+                bytes[8..12].copy_from_slice(&SNAPSHOT_VERSION.to_le_bytes());
+            }
+            let _ = parse_snapshot(Path::new("snapshot.bin"), &bytes);
+        }
+
+        #[test]
+        fn any_flipped_byte_or_cut_is_an_error(pos in 0.0f64..1.0, x in 1u8..=255, cut in 0.0f64..1.0) {
+            let good = valid_snapshot();
+            let mut bytes = good.to_vec();
+            let i = ((bytes.len() - 1) as f64 * pos) as usize;
+            bytes[i] ^= x;
+            prop_assert!(parse_snapshot(Path::new("snapshot.bin"), &bytes).is_err(), "byte {} flipped was accepted", i);
+            let short = &good[..((good.len() - 1) as f64 * cut) as usize];
+            prop_assert!(parse_snapshot(Path::new("snapshot.bin"), short).is_err());
+        }
     }
 }

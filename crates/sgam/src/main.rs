@@ -13,16 +13,22 @@ mod fuse;
 mod generate;
 mod generator;
 mod greedy;
+mod guard;
 mod keyframes;
+mod live;
 mod overview;
 mod pairs;
 mod progress;
 mod refiners;
+mod serve;
 mod synth;
 mod train;
+mod train_decoder;
 mod train_sampler;
+mod video;
+mod view;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// SGAM: Simultaneous Generation And Mapping.
 ///
@@ -55,24 +61,63 @@ enum Command {
     Eval(eval::EvalCommand),
     /// Import the SGAM authors' PyTorch Lightning checkpoint (`last.ckpt`) as a safetensors model.
     ConvertCheckpoint(convert::ConvertArgs),
+    /// (Re)write a run's browser viewer RUN/world.html (self-contained, works offline) and open
+    /// it; --serve serves the run folder on 127.0.0.1.
+    View(view::ViewArgs),
 }
 
 fn main() -> std::process::ExitCode {
-    let cli = Cli::parse();
+    let matches = Cli::command().get_matches();
+    let cli = match Cli::from_arg_matches(&matches) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
     let result = match cli.command {
-        Command::Generate(a) => generate::run(*a),
+        Command::Generate(a) => {
+            let given = matches.subcommand_matches("generate").map(given_options).unwrap_or_default();
+            generate::check_command_line(&a, &given).and_then(|()| generate::run(*a))
+        }
         Command::Fuse(a) => fuse::run(a),
         Command::Synth(a) => synth::run(a),
         Command::Bench(a) => bench::run(a),
         Command::Eval(c) => eval::run(c),
         Command::Train(c) => train::run(c),
         Command::ConvertCheckpoint(a) => convert::run(a),
+        Command::View(a) => view::run(a),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_message(&e));
             std::process::ExitCode::FAILURE
         }
     }
+}
+
+/// The options of `sgam generate` given on the command line (not defaults), as `--long-name`.
+fn given_options(m: &clap::ArgMatches) -> Vec<String> {
+    let cli = Cli::command();
+    let Some(generate) = cli.find_subcommand("generate") else { return Vec::new() };
+    generate
+        .get_arguments()
+        .filter(|a| m.value_source(a.get_id().as_str()) == Some(clap::parser::ValueSource::CommandLine))
+        .map(|a| format!("--{}", a.get_long().unwrap_or(a.get_id().as_str())))
+        .collect()
+}
+
+/// The error and its causes joined by ": ", each said once: a cause whose text an outer message
+/// already holds (libraries that print their source) is not repeated.
+fn error_message(e: &anyhow::Error) -> String {
+    let mut msg = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if text.is_empty() || msg.contains(&text) {
+            continue;
+        }
+        if !msg.is_empty() {
+            msg.push_str(": ");
+        }
+        msg.push_str(&text);
+    }
+    msg
 }

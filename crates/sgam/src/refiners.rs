@@ -132,31 +132,60 @@ mod tests {
     use super::*;
     use sgam_core::{Camera, Intrinsics, Rigid3};
 
+    fn guidance(frame: RgbdFrame, missing: Vec<bool>) -> Guidance {
+        let (w, h) = (frame.width(), frame.height());
+        Guidance { camera: Camera::new(Intrinsics::from_fov_x(w, h, 1.0), Rigid3::IDENTITY), frame, missing, seed: 0 }
+    }
+
     #[test]
     fn push_pull_fills_every_hole_with_nearby_values() {
+        // Two regions of a 16 x 12 frame: columns 0..4 at 2 m (colour a), 12..16 at 8 m (colour
+        // b), a hole between. The pyramid (16 -> 8 -> 4 -> 2 -> 1 columns) keeps the two apart
+        // until the 2-column level, so each hole column takes the value of the nearer region:
+        // columns 4..8 get a and 2 m, 8..12 get b and 8 m (not their 5 m mean).
         let (w, h) = (16u32, 12u32);
+        let (a, b) = ([0.2, 0.4, 0.6], [0.9, 0.1, 0.3]);
         let mut frame = RgbdFrame::empty(w, h);
         let mut missing = vec![true; (w * h) as usize];
         for v in 0..h {
-            for u in 0..w / 2 {
+            for u in (0..4).chain(12..16) {
                 let i = (v * w + u) as usize;
-                frame.colour.data[i] = [0.2, 0.4, 0.6];
-                frame.depth_m.data[i] = 5.0;
+                (frame.colour.data[i], frame.depth_m.data[i]) = if u < 4 { (a, 2.0) } else { (b, 8.0) };
                 missing[i] = false;
             }
         }
-        let g = Guidance {
-            camera: Camera::new(Intrinsics::from_fov_x(w, h, 1.0), Rigid3::IDENTITY),
-            frame: frame.clone(),
-            missing: missing.clone(),
-            seed: 0,
-        };
+        let g = guidance(frame.clone(), missing.clone());
         let out = NullRefiner { fill: true }.refine(&g).unwrap();
-        for i in 0..(w * h) as usize {
-            assert!((out.depth_m.data[i] - 5.0).abs() < 1e-5);
-            assert!((out.colour.data[i][1] - 0.4).abs() < 1e-5);
+        for v in 0..h {
+            for u in 0..w {
+                let i = (v * w + u) as usize;
+                let (colour, depth) = if u < 8 { (a, 2.0) } else { (b, 8.0) };
+                assert!((out.depth_m.data[i] - depth).abs() < 1e-5, "({u}, {v}): {}", out.depth_m.data[i]);
+                assert!((0..3).all(|c| (out.colour.data[i][c] - colour[c]).abs() < 1e-5), "({u}, {v})");
+            }
         }
         let raw = NullRefiner { fill: false }.refine(&g).unwrap();
-        assert_eq!(raw.depth_m.data[(w - 1) as usize], 0.0);
+        assert_eq!(raw.depth_m.data[(w - 1) as usize], 8.0);
+        assert_eq!(raw.depth_m.data[(w / 2) as usize], 0.0);
+
+        // A lone hole in a depth ramp d = 1 + 0.1 u + 0.05 v takes the mean of the valid pixels
+        // of its 2 x 2 block: at (9, 6) those are (8, 6), (8, 7), (9, 7), so 1 + 0.1 * 25 / 3 +
+        // 0.05 * 20 / 3 = 13 / 6 (the true 2.2 is one ramp step away); valid pixels are kept.
+        let mut frame = RgbdFrame::empty(w, h);
+        for v in 0..h {
+            for u in 0..w {
+                let d = 1.0 + 0.1 * u as f32 + 0.05 * v as f32;
+                *frame.depth_m.at_mut(u, v) = d;
+                *frame.colour.at_mut(u, v) = [d / 4.0; 3];
+            }
+        }
+        let mut missing = vec![false; (w * h) as usize];
+        missing[(6 * w + 9) as usize] = true;
+        let out = NullRefiner { fill: true }.refine(&guidance(frame.clone(), missing)).unwrap();
+        assert!((*out.depth_m.at(9, 6) - 13.0 / 6.0).abs() < 1e-5, "{}", out.depth_m.at(9, 6));
+        assert!((out.colour.at(9, 6)[0] - 13.0 / 24.0).abs() < 1e-5);
+        let mut kept = out.depth_m.clone();
+        *kept.at_mut(9, 6) = *frame.depth_m.at(9, 6);
+        assert_eq!(kept, frame.depth_m);
     }
 }

@@ -8,12 +8,13 @@ use clap::Args;
 use sgam_io::{ClevrFrameMeta, DepthType};
 use sgam_synth::{dataset_cameras, RenderConfig, Renderer, Scene, SceneConfig, CAMERA_FOV_X_RAD};
 
+use crate::guard::in_range;
 use crate::progress;
 
 /// Arguments of `sgam synth`.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Example (the paper's 72/8 split, 2,500 frames per scene):\n  sgam synth --scenes 80 --split 72/8 --res 256 --grid 50 --seed 0 --out clevr-infinite\n\nEach scene folder holds transforms.json (Blender camera-to-world, camera_angle_x, grid_i/grid_j,\ndepth_type), im_NNNNN.png, dm_NNNNN.npy and scene.json (the object list). Finished scenes are\nskipped, so an interrupted run continues where it stopped."
+    after_help = "Example (the paper's 72/8 split, 2,500 frames per scene):\n  sgam synth --scenes 80 --split 72/8 --res 256 --grid 50 --seed 0 --out clevr-infinite\n\nEach scene folder holds transforms.json (Blender camera-to-world, camera_angle_x, grid_i/grid_j,\ndepth_type), im_NNNNN.png, dm_NNNNN.npy and scene.json (the object list). OUT/synth.json records\nthe render options: an interrupted run continues where it stopped (finished scenes are skipped)\nwhen given the same options, and refuses other ones."
 )]
 pub struct SynthArgs {
     /// Output folder (gets train/ and test/ sub-folders).
@@ -22,9 +23,10 @@ pub struct SynthArgs {
     /// Number of scenes.
     #[arg(long, default_value_t = 80)]
     pub scenes: usize,
-    /// Train/test split as TRAIN/TEST scene counts (must add up to --scenes).
-    #[arg(long, default_value = "72/8")]
-    pub split: String,
+    /// Train/test split as TRAIN/TEST scene counts (must add up to --scenes; default: a tenth
+    /// of the scenes, rounded down, for test, as the paper's 72/8).
+    #[arg(long)]
+    pub split: Option<String>,
     /// Image resolution (square).
     #[arg(long, default_value_t = 256)]
     pub res: u32,
@@ -45,21 +47,112 @@ pub struct SynthArgs {
     pub planar_depth: bool,
 }
 
+/// Most scenes, objects per scene, grid side, resolution and samples per pixel `sgam synth`
+/// accepts (memory stays bounded: one frame at a time, objects in RAM).
+const MAX_SCENES: usize = 100_000;
+const MAX_OBJECTS: usize = 100_000;
+const MAX_GRID: usize = 1000;
+const MAX_RES: u32 = 4096;
+const MAX_SPP: u32 = 1024;
+
+/// The options that decide what a scene's files hold, recorded as `OUT/synth.json`: an
+/// interrupted run continues only with the same ones (so no folder mixes two renderings).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+struct RenderOptions {
+    res: u32,
+    grid: usize,
+    spp: u32,
+    objects: usize,
+    planar_depth: bool,
+    seed: u64,
+}
+
+impl SynthArgs {
+    /// Checks every option (in range, memory bounded); returns the train/test split. Errors name
+    /// the option and the accepted range.
+    fn validate(&self) -> Result<(usize, usize)> {
+        in_range("--scenes", self.scenes, 1..=MAX_SCENES)?;
+        in_range("--res", self.res, 8..=MAX_RES)?;
+        in_range("--grid", self.grid, 1..=MAX_GRID)?;
+        in_range("--spp", self.spp, 1..=MAX_SPP)?;
+        in_range("--objects", self.objects, 0..=MAX_OBJECTS)?;
+        match &self.split {
+            Some(split) => parse_split(split, self.scenes),
+            None => Ok((self.scenes - self.scenes / 10, self.scenes / 10)),
+        }
+    }
+
+    fn render_options(&self) -> RenderOptions {
+        RenderOptions {
+            res: self.res,
+            grid: self.grid,
+            spp: self.spp,
+            objects: self.objects,
+            planar_depth: self.planar_depth,
+            seed: self.seed,
+        }
+    }
+}
+
+/// Records the render options in `OUT/synth.json`, or checks them against the recorded ones:
+/// scenes rendered with other options are never continued or counted as done.
+fn claim_output(out: &Path, options: &RenderOptions) -> Result<()> {
+    let path = out.join("synth.json");
+    if path.exists() {
+        let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read", path.display()))?;
+        let stored: RenderOptions = serde_json::from_slice(&bytes)
+            .with_context(|| format!("{}: not the record of an sgam synth run", path.display()))?;
+        if stored != *options {
+            let json = |o: &RenderOptions| serde_json::to_string(o).unwrap_or_default();
+            bail!(
+                "{} holds scenes rendered with other options ({} records {}; asked {}); use those options, or \
+                 another --out",
+                out.display(),
+                path.display(),
+                json(&stored),
+                json(options)
+            );
+        }
+        return Ok(());
+    }
+    if ["train", "test"].iter().any(|s| out.join(s).exists()) {
+        bail!(
+            "{} holds scenes but no synth.json recording their options (an older sgam, or another tool), so they \
+             cannot be continued safely; render into another --out",
+            out.display()
+        );
+    }
+    let json = serde_json::to_vec_pretty(options)?;
+    sgam_io::write_atomic(&path, |w| std::io::Write::write_all(w, &json))?;
+    Ok(())
+}
+
+/// True when `dir` holds a finished scene: a `transforms.json` that reads, with every camera of
+/// the grid and the asked depth type (an empty or cut file is not finished).
+fn scene_finished(dir: &Path, args: &SynthArgs) -> bool {
+    let want = if args.planar_depth { DepthType::Planar } else { DepthType::RayLength };
+    sgam_io::read_clevr_transforms(&dir.join("transforms.json"))
+        .is_ok_and(|t| t.frames.len() == args.grid * args.grid && t.effective_depth_type() == want)
+}
+
 fn parse_split(split: &str, scenes: usize) -> Result<(usize, usize)> {
     let (a, b) = split.split_once('/').with_context(|| format!("--split '{split}' is not TRAIN/TEST"))?;
-    let (a, b): (usize, usize) =
-        (a.trim().parse().context("--split train count")?, b.trim().parse().context("--split test count")?);
-    if a + b != scenes {
-        bail!("--split {a}/{b} adds up to {} but --scenes is {scenes}", a + b);
+    let (a, b): (usize, usize) = (
+        a.trim().parse().with_context(|| format!("--split '{split}': train count"))?,
+        b.trim().parse().with_context(|| format!("--split '{split}': test count"))?,
+    );
+    if a.checked_add(b) != Some(scenes) {
+        bail!("--split {a}/{b} does not add up to --scenes {scenes}");
     }
     Ok((a, b))
 }
 
-/// Renders one scene into `dir` (skipped when `transforms.json` already exists).
+/// Renders one scene into `dir` (skipped when it is finished, see [`scene_finished`]).
 fn render_scene(dir: &Path, seed: u64, args: &SynthArgs, pb: &indicatif::ProgressBar) -> Result<bool> {
-    if dir.join("transforms.json").exists() {
+    if scene_finished(dir, args) {
         return Ok(false);
     }
+    crate::guard::remove_stale_temp_files(dir, &[])?;
     let config = SceneConfig { object_count: args.objects, ..SceneConfig::default() };
     let scene = Scene::generate(seed, &config);
     let renderer = Renderer::new(&scene);
@@ -91,10 +184,9 @@ fn render_scene(dir: &Path, seed: u64, args: &SynthArgs, pb: &indicatif::Progres
 
 /// Runs `sgam synth`.
 pub fn run(args: SynthArgs) -> Result<()> {
-    let (n_train, _) = parse_split(&args.split, args.scenes)?;
-    if args.grid == 0 || args.res < 8 {
-        bail!("--grid must be >= 1 and --res >= 8");
-    }
+    let (n_train, _) = args.validate()?;
+    let _lock = crate::guard::RunLock::acquire(&args.out)?;
+    claim_output(&args.out, &args.render_options())?;
     let per_scene = (args.grid * args.grid) as u64;
     let pb = progress::bar(per_scene * args.scenes as u64, "rendering");
     let start = Instant::now();

@@ -12,6 +12,7 @@ use sgam_model::train::ValidationImage;
 use sgam_model::{ModelConfig, PairSource, Stage, TrainConfig, TrainPair};
 
 use crate::generate::HELD_OUT_SEED_BASE;
+use crate::guard::{in_range, positive, RunLock};
 use crate::pairs::SynthPairs;
 use crate::progress;
 
@@ -38,6 +39,9 @@ pub enum TrainCommand {
     /// (cross-entropy against the codes the frozen encoder gives the clean target), on pairs
     /// recorded from the generator itself running with the oracle on training scenes.
     Sampler(SamplerArgs),
+    /// Fine-tune the decoder on whole frames (the codes, encoder and codebook stay): a decoder
+    /// trained on crops cannot tell how far the ground is at a frame's border.
+    Decoder(crate::train_decoder::DecoderArgs),
     /// Write a run's weights as a shippable model file (f16 by default, config embedded).
     #[command(
         after_help = "Example (the bundled model):\n  sgam train export runs/s2/model.safetensors models/compact.safetensors"
@@ -58,6 +62,8 @@ pub struct ExportArgs {
 }
 
 fn export(a: &ExportArgs) -> Result<()> {
+    crate::guard::check_input_file("input", &a.input)?;
+    crate::guard::check_output_file("output", &a.output)?;
     let device = sgam_model::default_device();
     let (model, config) = sgam_model::refiner::load_model(&a.input, None, &device)
         .with_context(|| format!("{}: cannot load the model", a.input.display()))?;
@@ -79,10 +85,19 @@ pub struct SamplerArgs {
     /// Run folder (checkpoint in RUN/ckpt, logs).
     #[arg(long)]
     pub run: PathBuf,
-    /// Model to start from; its codebook and decoder are kept and its encoder gives the targets
-    /// (default: the bundled model).
+    /// Model whose codebook and decoder are kept and whose encoder gives the targets; also the
+    /// starting point unless --warm-start is given (default: `models/features.safetensors`, the
+    /// stage-2 regression model the bundled sampler was built on).
     #[arg(long)]
     pub init: Option<PathBuf>,
+    /// Start from this sampler model (e.g. the bundled `models/compact.safetensors`) instead of
+    /// --init; it must share --init's codebook and decoder (new runs only).
+    #[arg(long)]
+    pub warm_start: Option<PathBuf>,
+    /// Weight of the depth term: L1 on the decoded disparity of codes drawn at T = 1 against
+    /// the target codes', in missing pixels (0 = cross-entropy only).
+    #[arg(long, default_value_t = 0.0)]
+    pub depth_weight: f32,
     /// Do not add the two ray (pixel-direction) input channels.
     #[arg(long)]
     pub no_rays: bool,
@@ -139,7 +154,7 @@ pub struct SamplerArgs {
 /// Options shared by both stages.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Examples:\n  sgam train stage1 --run runs/train-s1 --steps 20000\n  sgam train stage2 --run runs/train-s2 --init runs/train-s1/model.safetensors --steps 10000\n\nRe-running the same command resumes from the run folder's last checkpoint (weights, optimizer\nstate, step, RNG). Validation strips (input | output | target) go to RUN/val/."
+    after_help = "Examples:\n  sgam train stage1 --run runs/train-s1 --steps 20000\n  sgam train stage2 --run runs/train-s2 --init runs/train-s1/model.safetensors --steps 10000\n\nRe-running the same command resumes from the run folder's last checkpoint, RUN/ckpt (weights,\noptimizer state, step, RNG; committed as a whole and verified on resume); only --steps,\n--lr-decay-from, --ckpt-every and --val-every may change. RUN/model.safetensors holds the last\ncheckpoint's weights. Validation strips (input | output | target) go to RUN/val/."
 )]
 pub struct TrainArgs {
     /// Run folder (checkpoints, config.json, validation images).
@@ -241,6 +256,67 @@ pub fn read_model_config(path: &Path) -> Result<ModelConfig> {
     Ok(c)
 }
 
+/// Side of the synthetic views training crops are cut from, pixels.
+const VIEW_RES: u32 = 256;
+
+impl TrainArgs {
+    /// Checks every option of stages 1 and 2 (finite, in range, the crop a multiple of
+    /// `model`'s downsampling factor within the 256-pixel views); errors name the option and
+    /// the accepted range.
+    pub fn validate(&self, model: &ModelConfig) -> Result<()> {
+        in_range("--steps", self.steps, 1..=10_000_000)?;
+        in_range("--batch", self.batch, 1..=sgam_model::train::MAX_BATCH)?;
+        let f = model.downsample_factor() as u32;
+        if !(f..=VIEW_RES).contains(&self.crop) || !self.crop.is_multiple_of(f) {
+            bail!(
+                "--crop {} is out of range: accepted multiples of the model's downsampling factor {f} in {f}..={VIEW_RES}",
+                self.crop
+            );
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0 && self.lr <= 1.0) {
+            bail!("--lr {} is out of range: accepted a positive number up to 1", self.lr);
+        }
+        if let Some(from) = self.lr_decay_from {
+            in_range("--lr-decay-from", from, 0..=self.steps.saturating_sub(1))?;
+        }
+        in_range("--perceptual-weight", self.perceptual_weight, 0.0..=1000.0)?;
+        if let Some(w) = self.missing_weight {
+            positive("--missing-weight", w, 1000.0)?;
+        }
+        in_range("--wide-holes", self.wide_holes, 0.0..=1.0)?;
+        in_range("--scenes", self.scenes, 1..=HELD_OUT_SEED_BASE - 1)?;
+        Ok(())
+    }
+}
+
+/// The error of a resumed run asked for other options, in option names.
+fn resume_mismatch(run: &Path, differences: &[sgam_model::train::ConfigDifference]) -> anyhow::Error {
+    if let Some(d) = differences.iter().find(|d| d.field == "stage") {
+        return anyhow::anyhow!(
+            "{} is a stage-{} run; stage {} needs its own --run folder (start it with --init {})",
+            run.display(),
+            d.stored,
+            d.asked,
+            run.join("model.safetensors").display()
+        );
+    }
+    let option = |field: &str| match field {
+        "model_config" => "--preset/--model-config".to_string(),
+        "init_weights" => "--init".to_string(),
+        "warmup_no_quant_steps" => "--warmup-no-quant".to_string(),
+        "data" => "--scenes/--wide-holes".to_string(),
+        f => format!("--{}", f.replace('_', "-")),
+    };
+    let list: Vec<String> =
+        differences.iter().map(|d| format!("{} {} (asked {})", option(d.field), d.stored, d.asked)).collect();
+    anyhow::anyhow!(
+        "{} was started with {}; resume it with those options (only --steps, --lr-decay-from, --ckpt-every and \
+         --val-every may change), or start a new run",
+        run.display(),
+        list.join(", ")
+    )
+}
+
 /// Runs `sgam train`.
 pub fn run(cmd: TrainCommand) -> Result<()> {
     let (stage, args) = match cmd {
@@ -248,34 +324,35 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         TrainCommand::Stage2(a) => (Stage::Two, a),
         TrainCommand::Export(a) => return export(&a),
         TrainCommand::Sampler(a) => return crate::train_sampler::run(&a),
+        TrainCommand::Decoder(a) => return crate::train_decoder::run(&a),
     };
-    if args.scenes == 0 || args.scenes >= HELD_OUT_SEED_BASE {
-        bail!("--scenes must be in 1..{HELD_OUT_SEED_BASE}");
-    }
-    if stage == Stage::Two && args.init.is_none() && !args.run.join("config.json").exists() {
-        bail!("stage 2 starts from a stage-1 model: pass --init RUN1/model.safetensors");
-    }
     let model_config = match (&args.model_config, args.preset) {
         (Some(path), _) => read_model_config(path)?,
         (None, Preset::Compact) => ModelConfig::compact(),
         (None, Preset::Paper) => ModelConfig::paper(),
         (None, Preset::Tiny) => ModelConfig::tiny(),
     };
+    args.validate(&model_config)?;
+    if let Some(init) = &args.init {
+        crate::guard::check_input_file("--init", init)?;
+    }
+    let _lock = RunLock::acquire(&args.run)?;
+    crate::guard::remove_stale_temp_files(&args.run, &["ckpt", "ckpt.old", "val"])?;
+    let resuming = sgam_model::train::read_checkpoint(&args.run)?.is_some();
+    if stage == Stage::Two && args.init.is_none() && !resuming {
+        bail!("stage 2 starts from a stage-1 model: pass --init RUN1/model.safetensors");
+    }
     let mut cfg = TrainConfig::new(stage, args.steps);
     cfg.batch = args.batch;
     cfg.crop = args.crop;
     cfg.lr = args.lr;
-    if let Some(from) = args.lr_decay_from {
-        if from >= args.steps {
-            bail!("--lr-decay-from ({from}) must be below --steps ({})", args.steps);
-        }
-    }
     cfg.lr_decay_from = args.lr_decay_from;
     cfg.perceptual_weight = args.perceptual_weight;
     cfg.missing_weight = args.missing_weight.unwrap_or(if stage == Stage::Two { 10.0 } else { 1.0 });
-    if !(cfg.missing_weight.is_finite() && cfg.missing_weight > 0.0) {
-        bail!("--missing-weight must be positive");
-    }
+    cfg.data =
+        [("scenes".to_string(), args.scenes.to_string()), ("wide_holes".to_string(), args.wide_holes.to_string())]
+            .into_iter()
+            .collect();
     cfg.warmup_no_quant_steps = args.warmup_no_quant;
     cfg.disc_start = args.disc_start;
     cfg.ckpt_every = args.ckpt_every;
@@ -324,7 +401,12 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     };
     let summary =
         sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
-            .map_err(anyhow::Error::new)?;
+            .map_err(|e| match e {
+                sgam_model::train::TrainError::ResumeMismatch { run, differences } => {
+                    resume_mismatch(&run, &differences)
+                }
+                other => anyhow::Error::new(other),
+            })?;
     pb.finish_and_clear();
     eprintln!(
         "trained to step {} ({:.2} images/s); weights: {}",

@@ -8,7 +8,8 @@ use rand_chacha::ChaCha8Rng;
 use sgam_model::generative::{CodeTrainConfig, CodeTrainer};
 use sgam_model::params::from_safetensors_bytes;
 
-use crate::generate::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
+use crate::eval_world::FEATURE_MODEL;
+use crate::generate::HELD_OUT_SEED_BASE;
 use crate::progress;
 use crate::train::SamplerArgs;
 
@@ -31,6 +32,9 @@ fn validate(a: &SamplerArgs) -> Result<()> {
     if !(a.target_smoothing.is_finite() && (0.0..=100.0).contains(&a.target_smoothing)) {
         bail!("--target-smoothing {} must be between 0 and 100", a.target_smoothing);
     }
+    if !(a.depth_weight.is_finite() && (0.0..=1000.0).contains(&a.depth_weight)) {
+        bail!("--depth-weight {} must be between 0 and 1000", a.depth_weight);
+    }
     if let Some(from) = a.lr_decay_from {
         if from >= a.steps {
             bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
@@ -49,13 +53,15 @@ fn validate(a: &SamplerArgs) -> Result<()> {
 pub fn run(a: &SamplerArgs) -> Result<()> {
     validate(a)?;
     std::fs::create_dir_all(&a.run).with_context(|| format!("{}: cannot create the run folder", a.run.display()))?;
+    let _lock = crate::guard::RunLock::acquire(&a.run)?;
+    crate::guard::remove_stale_temp_files(&a.run, &[])?;
     let device = sgam_model::default_device();
     // the frozen target encoder: a copy of the starting model, kept with the run
     let target_path = a.run.join("target.safetensors");
     if !target_path.exists() {
         let bytes = match &a.init {
             Some(p) => std::fs::read(p).with_context(|| format!("{}: cannot read --init", p.display()))?,
-            None => BUNDLED_MODEL.to_vec(),
+            None => FEATURE_MODEL.to_vec(),
         };
         sgam_io::write_atomic(&target_path, |w| w.write_all(&bytes))?;
     }
@@ -71,6 +77,13 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     let resuming = CodeTrainer::checkpoint_dir(&a.run).is_some();
     let mut trainer = if resuming {
         let t = CodeTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)?;
+        if t.train_config.depth_weight != a.depth_weight {
+            bail!(
+                "{}: this run trains with --depth-weight {}; resume with it (or start a new run)",
+                a.run.display(),
+                t.train_config.depth_weight
+            );
+        }
         eprintln!("resuming {} at step {}", a.run.display(), t.step);
         t
     } else {
@@ -81,6 +94,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             lr_decay_from: a.lr_decay_from,
             observed_weight: a.observed_weight,
             target_smoothing: a.target_smoothing,
+            depth_weight: a.depth_weight,
             ckpt_every: a.ckpt_every,
             seed: a.seed,
             ..CodeTrainConfig::default()
@@ -90,7 +104,31 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         cfg.code_head = !a.distance_logits;
         cfg.code_tau = None;
         let bytes = std::fs::read(&target_path).with_context(|| format!("{}: cannot read", target_path.display()))?;
-        let tensors = from_safetensors_bytes(&bytes).with_context(|| format!("{}", target_path.display()))?.0;
+        let mut tensors = from_safetensors_bytes(&bytes).with_context(|| format!("{}", target_path.display()))?.0;
+        if let Some(w) = &a.warm_start {
+            let bytes = std::fs::read(w).with_context(|| format!("{}: cannot read --warm-start", w.display()))?;
+            let (start, meta) = from_safetensors_bytes(&bytes).with_context(|| format!("{}", w.display()))?;
+            // the decoder turns codes into pixels: a start with another codebook or decoder
+            // would be trained against targets it cannot decode
+            for (name, t) in tensors.iter().filter(|(n, _)| {
+                n.starts_with("quantize.") || n.starts_with("decoder.") || n.starts_with("post_quant_conv.")
+            }) {
+                let same = start.get(name).is_some_and(|s| {
+                    s.shape == t.shape
+                        && s.values.iter().zip(&t.values).all(|(x, y)| (x - y).abs() <= 1e-3 * y.abs().max(1.0))
+                });
+                if !same {
+                    bail!("{}: its {name} differs from the target model's; --warm-start needs the same codebook and decoder", w.display());
+                }
+            }
+            if let Some(c) = meta.get("sgam_model_config") {
+                let warm: sgam_model::config::ModelConfig = serde_json::from_str(c)
+                    .with_context(|| format!("{}: its embedded config cannot be read", w.display()))?;
+                cfg.ray_channels = warm.ray_channels;
+                cfg.code_head = warm.code_head;
+            }
+            tensors = start;
+        }
         CodeTrainer::new(&cfg, &tensors, &tc)?
     };
     // pairs: recorded from the generator with the oracle, deterministic from --seed
@@ -161,8 +199,16 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     let mut validate = |trainer: &CodeTrainer, pb: &indicatif::ProgressBar| -> Result<()> {
         let v = trainer.evaluate(&val_pairs, 16)?;
         let line = format!(
-            "step {}: validation CE missing {:.3} (acc {:.3}), observed {:.3} (acc {:.3}), tau {:.4}",
-            trainer.step, v.ce_missing, v.acc_missing, v.ce_observed, v.acc_observed, v.tau
+            "step {}: validation CE missing {:.3} (acc {:.3}), observed {:.3} (acc {:.3}), tau {:.4}; \
+             drawn-code disparity L1 {:.4}, bias {:+.4}",
+            trainer.step,
+            v.ce_missing,
+            v.acc_missing,
+            v.ce_observed,
+            v.acc_observed,
+            v.tau,
+            v.depth_l1_missing.unwrap_or(f32::NAN),
+            v.depth_bias_missing.unwrap_or(f32::NAN)
         );
         if pb.is_hidden() {
             eprintln!("{line}");
@@ -190,8 +236,17 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         ));
         if !is_terminal && r.step % 50 == 0 {
             eprintln!(
-                "step {} CE missing {:.3} (acc {:.2}) observed {:.3} (acc {:.2}) tau {:.4} ({:.1} pairs/s)",
-                r.step, r.ce_missing, r.acc_missing, r.ce_observed, r.acc_observed, r.tau, rate
+                "step {} CE missing {:.3} (acc {:.2}) observed {:.3} (acc {:.2}) tau {:.4} disparity L1 {:.4} \
+                 bias {:+.4} ({:.1} pairs/s)",
+                r.step,
+                r.ce_missing,
+                r.acc_missing,
+                r.ce_observed,
+                r.acc_observed,
+                r.tau,
+                r.depth_l1_missing.unwrap_or(f32::NAN),
+                r.depth_bias_missing.unwrap_or(f32::NAN),
+                rate
             );
         }
         if r.step % trainer.train_config.ckpt_every.max(1) == 0 {

@@ -20,15 +20,29 @@ fn oracle_run_reproduces_ground_truth_and_mesh_matches_scene() {
     ok(&["generate", "--out", run_s, "--res", "64", "--steps", "8", "--refiner", "oracle", "--no-video"]);
     let scene = Scene::generate(1_000_000, &SceneConfig::default());
     let renderer = Renderer::new(&scene);
-    // generated frames equal the ground-truth renders (up to 8-bit quantisation)
+    // generated frames equal the ground-truth renders up to 8-bit quantisation: at least 99.9 %
+    // of the channel values within one level of the render's (rounding to 8 bits moves a value
+    // by half a level; the pose read back from transforms.json may differ in the last bits and
+    // move a few silhouette pixels)
     let t = sgam_io::read_nerf_transforms(&run.join("transforms.json")).unwrap();
     assert_eq!(t.frames.len(), 9);
     for i in [3usize, 8] {
         let cam = Camera::new(t.intrinsics, t.frames[i].world_from_camera);
         let truth = renderer.render(&cam, &RenderConfig::default()).frame;
         let got = sgam_io::read_rgb(&run.join(&t.frames[i].file_path)).unwrap();
-        let psnr = sgam_metrics::psnr(&got, &truth.colour, None).unwrap();
-        assert!(psnr > 40.0, "frame {i}: PSNR {psnr}");
+        assert_eq!(got.size(), truth.colour.size());
+        let level = |x: f32| (x.clamp(0.0, 1.0) * 255.0).round() as i32;
+        let values = got.data.len() * 3;
+        let close = got
+            .data
+            .iter()
+            .zip(&truth.colour.data)
+            .flat_map(|(a, b)| (0..3).map(move |c| (level(a[c]) - level(b[c])).abs()))
+            .filter(|d| *d <= 1)
+            .count();
+        let fraction = close as f64 / values as f64;
+        eprintln!("frame {i}: {close} of {values} channel values within one level");
+        assert!(fraction >= 0.999, "frame {i}: only {:.3} % within one level", 100.0 * fraction);
     }
     // the fused mesh lies on the scene: near the ground or within an object's bounds
     let mesh = sgam_io::read_ply(&run.join("mesh.ply")).unwrap();
