@@ -11,7 +11,7 @@
 //!
 //! The encoder, codebook and code head are untouched, so the code distribution a sampler
 //! learned stays valid: only what the codes decode to improves. Checkpoints are one folder,
-//! `RUN/ckpt`, replaced as a whole by renames (as [`crate::generative::CodeTrainer::save`]).
+//! `RUN/ckpt`, committed as a whole with a manifest ([`crate::checkpoint`]).
 
 use std::path::Path;
 
@@ -271,43 +271,30 @@ impl DecoderTuner {
         })
     }
 
-    /// Writes `run_dir/ckpt` (model with its config embedded, optimizer, state) atomically.
+    /// Writes `run_dir/ckpt` (model with its config embedded, optimizer, state) as a whole,
+    /// with a manifest of sizes and CRC-32s ([`crate::checkpoint::commit_folder`]).
     pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
-        let io = |what: &str, p: &Path, e: std::io::Error| ModelError::Io(format!("{what} {}: {e}", p.display()));
-        let (new, cur, old) = (run_dir.join("ckpt.new"), run_dir.join("ckpt"), run_dir.join("ckpt.old"));
-        if new.exists() {
-            std::fs::remove_dir_all(&new).map_err(|e| io("removing", &new, e))?;
-        }
-        std::fs::create_dir_all(&new).map_err(|e| io("creating", &new, e))?;
-        let meta = crate::refiner::weight_metadata(&self.model_config)?;
-        save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
-        let bytes = self.optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
-        crate::params::write_atomic(&new.join("optim.bpk"), &bytes)?;
-        let state = TuneState {
-            version: STATE_VERSION,
-            model_config: self.model_config.clone(),
-            config: self.config.clone(),
-            step: self.step,
-        };
-        let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::Checkpoint(format!("state: {e}")))?;
-        crate::params::write_atomic(&new.join("state.json"), &json)?;
-        if cur.exists() {
-            if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
-            }
-            std::fs::rename(&cur, &old).map_err(|e| io("renaming", &cur, e))?;
-        }
-        std::fs::rename(&new, &cur).map_err(|e| io("renaming", &new, e))?;
-        if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
-        }
+        crate::checkpoint::commit_folder(run_dir, "ckpt", |new| {
+            let meta = crate::refiner::weight_metadata(&self.model_config)?;
+            save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
+            let bytes = self.optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
+            crate::params::write_atomic(&new.join("optim.bpk"), &bytes)?;
+            let state = TuneState {
+                version: STATE_VERSION,
+                model_config: self.model_config.clone(),
+                config: self.config.clone(),
+                step: self.step,
+            };
+            let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::Checkpoint(format!("state: {e}")))?;
+            crate::params::write_atomic(&new.join("state.json"), &json)
+        })?;
         Ok(())
     }
 
-    /// The checkpoint folder to resume from (`ckpt`, or `ckpt.old` after a save interrupted
-    /// between its renames); `None` when the run has none.
+    /// The committed checkpoint folder to resume from (`ckpt`, or `ckpt.old` after a save
+    /// interrupted between its renames); `None` when the run has none.
     pub fn checkpoint_dir(run_dir: &Path) -> Option<std::path::PathBuf> {
-        [run_dir.join("ckpt"), run_dir.join("ckpt.old")].into_iter().find(|p| p.join("state.json").exists())
+        crate::checkpoint::committed_folder(run_dir, "ckpt")
     }
 
     /// Resumes from `run_dir`'s checkpoint; `steps` overrides the stored total.
@@ -319,6 +306,7 @@ impl DecoderTuner {
     ) -> Result<Self, ModelError> {
         let dir = Self::checkpoint_dir(run_dir)
             .ok_or_else(|| ModelError::Checkpoint(format!("{}: no checkpoint (ckpt/state.json)", run_dir.display())))?;
+        crate::checkpoint::verify_folder(&dir)?;
         let path = dir.join("state.json");
         let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
         let state: TuneState = serde_json::from_slice(&bytes)
