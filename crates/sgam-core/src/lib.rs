@@ -15,6 +15,7 @@
 
 mod camera;
 mod error;
+pub mod ground;
 mod image;
 mod mesh;
 mod refiner;

@@ -8,7 +8,11 @@
 //! - A cell's height is the highest z of the mesh vertices, and of points sampled on its
 //!   triangles at spacing <= `cell_m / 2`, that fall in it (so a large flat triangle fills every
 //!   cell it covers). Cells nothing falls in are empty (NaN).
-//! - Ground height = MEDIAN height of the occupied new-area cells (objects cover a minority).
+//! - Ground height = the DENSEST LEVEL of the occupied new-area cells: the median of the most
+//!   cells that fit in one +-`ground_window_m` height band ([`ground_level`]). A median of all
+//!   cells would assume the ground covers most of the area; a generated world whose invented
+//!   lumps cover more of it than its ground would then get a "ground" in the lumps, and a flat
+//!   true ground would count as rough.
 //! - Objects = 8-connected components of occupied new-area cells more than `object_height_m`
 //!   above the ground, of area >= `min_object_area_m2`. Smaller such components are neither
 //!   objects nor ground: they count in no statistic except `new_area_m2`.
@@ -30,11 +34,13 @@ pub struct WorldStatsConfig {
     pub min_object_area_m2: f32,
     /// The seed footprint is grown by this before it is excluded, metres (1.0).
     pub exclusion_margin_m: f32,
+    /// Half height of the band that finds the ground level, metres (0.1).
+    pub ground_window_m: f32,
 }
 
 impl Default for WorldStatsConfig {
     fn default() -> Self {
-        Self { cell_m: 0.1, object_height_m: 0.25, min_object_area_m2: 0.2, exclusion_margin_m: 1.0 }
+        Self { cell_m: 0.1, object_height_m: 0.25, min_object_area_m2: 0.2, exclusion_margin_m: 1.0, ground_window_m: 0.1 }
     }
 }
 
@@ -197,7 +203,7 @@ pub fn world_stats(mesh: &TriMesh, exclusion: &Exclusion, cfg: &WorldStatsConfig
         .collect();
     let new_heights: Vec<f32> = hf.height_m.iter().zip(&new).filter(|(_, n)| **n).map(|(h, _)| *h).collect();
     let new_area_m2 = new_heights.len() as f32 * cell_area;
-    let ground = median(&new_heights).unwrap_or(f32::NAN);
+    let ground = ground_level(&new_heights, cfg.ground_window_m).unwrap_or(f32::NAN);
     let threshold = ground + cfg.object_height_m;
     let raised: Vec<bool> = hf.height_m.iter().zip(&new).map(|(h, n)| *n && *h > threshold).collect();
     // components of raised cells; a component is an object when it has at least `min_cells`
@@ -243,6 +249,35 @@ pub fn world_stats(mesh: &TriMesh, exclusion: &Exclusion, cfg: &WorldStatsConfig
         ground_rms_mm,
         object_areas_m2,
     }
+}
+
+/// The ground level of a set of cell heights: the median of the cells in the densest height band
+/// `[h, h + 2 half_window_m]`. Bands holding at least 95 % of the densest one's cells count as
+/// tied, and the tie goes to the band nearest the median of all heights, so a ground without one
+/// dominant level (a ramp, two equal terraces) falls back to the overall median. `None` when
+/// `heights` holds no finite value.
+pub fn ground_level(heights: &[f32], half_window_m: f32) -> Option<f32> {
+    let mut h: Vec<f32> = heights.iter().copied().filter(|x| x.is_finite()).collect();
+    h.sort_by(f32::total_cmp);
+    let all = median(&h)?;
+    let width = 2.0 * half_window_m.max(0.0);
+    // bands starting at each cell: [start, end)
+    let mut bands = Vec::with_capacity(h.len());
+    let mut end = 0usize;
+    for start in 0..h.len() {
+        end = end.max(start);
+        while end < h.len() && h[end] - h[start] <= width {
+            end += 1;
+        }
+        bands.push((start, end));
+    }
+    let densest = bands.iter().map(|(a, b)| b - a).max()?;
+    let centre = |&(a, b): &(usize, usize)| 0.5 * (h[a] + h[b - 1]);
+    let (a, b) = bands
+        .into_iter()
+        .filter(|(a, b)| (b - a) as f64 >= 0.95 * densest as f64)
+        .min_by(|x, y| (centre(x) - all).abs().total_cmp(&(centre(y) - all).abs()))?;
+    median(&h[a..b])
 }
 
 /// The 8-connected component of `mask` cells holding `start`, marking them in `seen`.

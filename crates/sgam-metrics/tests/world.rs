@@ -364,3 +364,38 @@ fn forty_metre_world_counts_its_cubes() {
     let whole = s.object_areas_m2.iter().filter(|a| (1.0..=1.44).contains(*a)).count();
     assert!(whole >= 96 && s.object_areas_m2.iter().all(|a| *a <= 1.44), "{:?}", s.object_areas_m2);
 }
+
+#[test]
+fn ground_level_is_the_densest_level_not_the_median() {
+    use sgam_metrics::world::ground_level;
+    // 40 % of the cells on a flat ground at 0, 60 % in lumps spread over 0.3..1.5 m: the median
+    // (0.42 m) lies in the lumps; the ground level is the flat ground
+    let mut h = vec![0.0f32; 400];
+    h.extend((0..600).map(|i| 0.3 + 1.2 * i as f32 / 599.0));
+    assert!(sgam_metrics::median(&h).unwrap() > 0.3);
+    assert_eq!(ground_level(&h, 0.1), Some(0.0));
+    // a uniform ramp has no dominant level: the band nearest the median wins
+    let ramp: Vec<f32> = (0..1001).map(|i| i as f32 / 1000.0).collect();
+    let g = ground_level(&ramp, 0.1).unwrap();
+    assert!((g - 0.5).abs() < 0.02, "{g}");
+    assert_eq!(ground_level(&[], 0.1), None);
+    assert_eq!(ground_level(&[f32::NAN, 2.0], 0.1), Some(2.0));
+}
+
+#[test]
+fn lumps_covering_most_of_the_area_leave_the_ground_on_the_ground() {
+    // a flat 12 x 12 m ground under three 12 x 2.3 m slabs 0.5, 0.9 and 1.3 m tall, 0.3 m
+    // apart: the slabs cover 57 % of the cells but no one level holds more than the ground's
+    // 43 %, so the ground stays at GROUND_Z with no roughness and the slabs are 3 objects. (A
+    // median over all cells lies on the 0.9 m slab: no ground would be found at all, the real
+    // ground and the 0.5 m slab would count as 0.4-0.9 m rough.)
+    let mut m = ground(0.025, 0.025, 11.975, 11.975, GROUND_Z, Density::Fine);
+    for (i, height) in [0.5f32, 0.9, 1.3].into_iter().enumerate() {
+        let y0 = 2.6 * i as f32;
+        m.append(&standing(0.0, y0, 12.0, y0 + 2.3, height, [0.9, 0.2, 0.2], Density::Fine));
+    }
+    let s = world_stats(&m, &Exclusion::none(), &WorldStatsConfig::default());
+    assert!((s.ground_height_m - GROUND_Z).abs() < 1e-6, "{s:?}");
+    assert!(s.ground_rms_mm < 1.0, "{s:?}");
+    assert_eq!(s.objects, 3, "{s:?}");
+}

@@ -107,6 +107,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
             temperature: row.temperature,
             no_map: row.no_map,
             no_refine: row.no_refine,
+            ground_snap: crate::generate::DEFAULT_GROUND_SNAP_M,
             paper: false,
             region_size: 5.0,
             out: Some(a.out.clone()),

@@ -65,6 +65,9 @@ pub struct WorldArgs {
     /// Sampling temperature of the model (0 = argmin).
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f32,
+    /// Ground prior of the refiner's worlds, metres (0 = off; see `sgam generate --help`).
+    #[arg(long, default_value_t = crate::generate::DEFAULT_GROUND_SNAP_M)]
+    pub ground_snap: f32,
     /// Ablation: no global map (warp from the previous frame only).
     #[arg(long)]
     pub no_map: bool,
@@ -110,6 +113,9 @@ impl WorldArgs {
         if matches!(self.refiner, RefinerKind::Auto | RefinerKind::Model) && !self.no_refine {
             label.push_str(&format!("-t{}", self.temperature));
         }
+        if self.refiner != RefinerKind::Oracle && self.ground_snap > 0.0 {
+            label.push_str(&format!("-g{}", self.ground_snap));
+        }
         if self.no_map {
             label.push_str("-nomap");
         }
@@ -138,6 +144,9 @@ impl WorldArgs {
         if !(self.temperature.is_finite() && self.temperature >= 0.0) {
             bail!("--temperature {} must be a non-negative number", self.temperature);
         }
+        if !(self.ground_snap.is_finite() && (0.0..=10.0).contains(&self.ground_snap)) {
+            bail!("--ground-snap {} must be between 0 and 10 metres", self.ground_snap);
+        }
         if !(self.region_size.is_finite() && self.region_size >= 1.0 && self.region_size <= 100.0) {
             bail!("--region-size {} must be between 1 and 100 metres", self.region_size);
         }
@@ -161,6 +170,7 @@ fn generate_args(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: us
         g.temperature = args.temperature;
         g.no_map = args.no_map;
         g.no_refine = args.no_refine;
+        g.ground_snap = args.ground_snap;
     }
     g
 }
@@ -180,7 +190,8 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
             && run["args"]["step"] == step;
         if kind != RefinerKind::Oracle {
             same &= run["args"]["no_map"].as_bool() == Some(args.no_map)
-                && run["args"]["no_refine"].as_bool() == Some(args.no_refine);
+                && run["args"]["no_refine"].as_bool() == Some(args.no_refine)
+                && run["args"]["ground_snap"].as_f64().unwrap_or(0.0) as f32 == args.ground_snap;
         }
         if matches!(kind, RefinerKind::Auto | RefinerKind::Model) && !args.no_refine {
             same &= run["args"]["temperature"].as_f64().map(|t| t as f32) == Some(args.temperature);
@@ -480,6 +491,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "refiner": label, "seeds": seeds, "steps": steps,
         "trajectory": format!("{:?}", args.trajectory).to_lowercase(),
         "temperature": args.temperature,
+        "ground_snap_m": args.ground_snap,
         "generated": gp, "oracle": op,
         "ratio_to_oracle": {
             "objects_per_100m2": ratio(gp.objects_per_100m2, op.objects_per_100m2),

@@ -42,6 +42,9 @@ pub enum TrajectoryKind {
     Greedy,
 }
 
+/// Default of `--ground-snap` (generate, eval world, eval table), metres.
+pub const DEFAULT_GROUND_SNAP_M: f32 = 0.0;
+
 /// Which refiner completes the guidance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 pub enum RefinerKind {
@@ -121,6 +124,13 @@ pub struct GenerateArgs {
     /// deterministic completion).
     #[arg(long, default_value_t = 1.0)]
     pub temperature: f32,
+    /// Ground prior, metres (0 = off): invented pixels the refiner puts less than this above
+    /// the seed frame's ground plane, or anywhere below it, are put back on the plane. The
+    /// plane is fitted once in the seed frame (RANSAC); a seed without a dominant plane gets no
+    /// prior. Objects (higher than this) keep the refiner's depth.
+    #[arg(long, default_value_t = DEFAULT_GROUND_SNAP_M)]
+    #[serde(default)]
+    pub ground_snap: f32,
     /// Codes considered when sampling: the k nearest (0 = all, the calibrated distribution).
     #[arg(long, default_value_t = 0)]
     pub top_k: usize,
@@ -245,6 +255,7 @@ impl GenerateArgs {
         }
         positive("--radius", self.radius, 10_000.0)?;
         in_range("--temperature", self.temperature, 0.0..=100.0)?;
+        in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
         in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
         if let Some(k) = self.k_sources {
             in_range("--k-sources", k, 1..=64)?;
@@ -837,6 +848,7 @@ fn run_with<R: Refiner>(
         k_sources: args.k_sources.unwrap_or(p.k_sources),
         source_radius_m: args.source_radius.unwrap_or(p.source_radius_m),
         no_map: args.no_map,
+        ground_snap_m: (args.ground_snap > 0.0).then_some(args.ground_snap),
         ..crate::generator::clevr_generator_config(args.seed)
     };
     let mut keyframes = Keyframes::new(dir, config.source_radius_m, 96);

@@ -4,6 +4,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
+use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
@@ -27,6 +28,10 @@ pub struct GeneratorConfig {
     pub no_map: bool,
     /// Run seed; the refiner's per-step seed is derived from it and the step index.
     pub seed: u64,
+    /// Ground prior: invented pixels that the refiner puts less than this many metres above the
+    /// seed frame's ground plane (or below it) are put back on the plane
+    /// ([`sgam_core::ground::snap_to_ground`]). `None` = the refiner's depth as it is.
+    pub ground_snap_m: Option<f32>,
 }
 
 /// The loop's parameters for the CLEVR-Infinite world (the authors' values, DESIGN.md §4 and
@@ -49,6 +54,7 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         weight_threshold: 1.0,
         no_map: false,
         seed,
+        ground_snap_m: None,
     }
 }
 
@@ -126,6 +132,8 @@ pub struct WorldGenerator<R: Refiner> {
     pub keyframes: Keyframes,
     refiner: R,
     config: GeneratorConfig,
+    /// The seed frame's ground plane once fitted (`Some(None)`: the seed shows no plane).
+    ground: Option<Option<GroundPlane>>,
 }
 
 impl<R: Refiner> std::fmt::Debug for WorldGenerator<R> {
@@ -138,7 +146,22 @@ impl<R: Refiner> WorldGenerator<R> {
     /// A generator over an existing map and keyframe store (empty for a new run, loaded from a
     /// snapshot when resuming).
     pub fn new(map: TsdfMap, keyframes: Keyframes, refiner: R, config: GeneratorConfig) -> Self {
-        Self { map, keyframes, refiner, config }
+        Self { map, keyframes, refiner, config, ground: None }
+    }
+
+    /// The seed frame's ground plane (fitted on first use from keyframe 0, which is stored
+    /// losslessly, so a resumed run fits exactly the plane the uninterrupted one did).
+    pub fn ground_plane(&mut self) -> Result<Option<GroundPlane>> {
+        if let Some(g) = self.ground {
+            return Ok(g);
+        }
+        if self.keyframes.len() == 0 {
+            return Ok(None);
+        }
+        let seed = self.keyframes.frame(0)?;
+        let plane = fit_ground_plane(&self.keyframes.cameras()[0], &seed, &GroundFitConfig::default());
+        self.ground = Some(plane);
+        Ok(plane)
     }
 
     /// Starts the world from a seed frame: it is fused and kept like a generated one.
@@ -168,6 +191,12 @@ impl<R: Refiner> WorldGenerator<R> {
         // complete the incomplete RGB-D image in one shot
         let mut frame = self.refiner.refine(&guidance).map_err(anyhow::Error::new).context("refiner failed")?;
         quantise_colour(&mut frame.colour);
+        if let Some(tolerance_m) = self.config.ground_snap_m {
+            if let Some(plane) = self.ground_plane()? {
+                let cfg = GroundSnapConfig::new(tolerance_m, self.config.tsdf.depth_max_m);
+                snap_to_ground(&mut frame, &guidance.missing, camera, &plane, &cfg);
+            }
+        }
         timings.refine_ms = t.lap();
         // fuse the new frame into the map, once
         self.map.integrate(&frame, camera);

@@ -316,6 +316,8 @@ fn bad_options_are_refused_before_work_naming_the_option() {
         (gen(&["--temperature", "NaN"]), "--temperature NaN"),
         (gen(&["--temperature=-1"]), "--temperature -1"),
         (gen(&["--temperature", "inf"]), "--temperature inf"),
+        (gen(&["--ground-snap", "NaN"]), "--ground-snap NaN"),
+        (gen(&["--ground-snap=-0.5"]), "--ground-snap -0.5"),
         (gen(&["--top-k", "10000000"]), "--top-k"),
         (gen(&["--k-sources", "0"]), "--k-sources 0"),
         (gen(&["--source-radius=-1"]), "--source-radius -1"),
