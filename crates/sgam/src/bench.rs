@@ -79,11 +79,14 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
     (crate::fuse::median(ms), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
-/// The bundled compact model with `sgam generate`'s default sampling (T = 1 over all codes;
+/// The bundled compact model with `sgam generate`'s default sampling (default T over all codes;
 /// iterative passes for large holes), for timing.
 fn compact_refiner() -> Result<sgam_model::VqRefiner> {
     let options = sgam_model::RefinerOptions {
-        sampling: sgam_model::Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        sampling: sgam_model::Sampling::Temperature {
+            temperature: crate::generate::DEFAULT_TEMPERATURE,
+            top_k: usize::MAX,
+        },
         ..Default::default()
     };
     Ok(sgam_model::VqRefiner::from_bytes(crate::generate::BUNDLED_MODEL, None, options)?)

@@ -14,7 +14,7 @@ use crate::generate::{GenerateArgs, RefinerKind};
 /// Arguments of `sgam eval table`.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Example:\n  sgam eval table --out runs/table      # writes runs/table/table.md and overviews.png\n\nRows: the bundled model sampled (T = 1) and argmin (T = 0), the null stand-in (push-pull),\n--no-map (warp from the previous frame only), --no-refine (guidance fused with its holes) and\nthe oracle. World columns come from `eval world` (held-out seeds, against the oracle), image\ncolumns from `eval one-step`."
+    after_help = "Example:\n  sgam eval table --out runs/table      # writes runs/table/table.md and overviews.png\n\nRows: the bundled model sampled (default T) and argmin (T = 0), the null stand-in (push-pull),\n--no-map (warp from the previous frame only), --no-refine (guidance fused with its holes) and\nthe oracle. World columns come from `eval world` (held-out seeds, against the oracle), image\ncolumns from `eval one-step`."
 )]
 pub struct TableArgs {
     /// Held-out seeds per world evaluation.
@@ -44,9 +44,9 @@ struct Row {
 
 const ROWS: [Row; 6] = [
     Row {
-        name: "model, sampled (T = 1, default)",
+        name: "model, sampled (default T)",
         refiner: RefinerKind::Auto,
-        temperature: 1.0,
+        temperature: crate::generate::DEFAULT_TEMPERATURE,
         no_map: false,
         no_refine: false,
     },
@@ -65,9 +65,9 @@ const ROWS: [Row; 6] = [
         no_refine: false,
     },
     Row {
-        name: "--no-map (model, T = 1)",
+        name: "--no-map (model, default T)",
         refiner: RefinerKind::Auto,
-        temperature: 1.0,
+        temperature: crate::generate::DEFAULT_TEMPERATURE,
         no_map: true,
         no_refine: false,
     },

@@ -63,7 +63,7 @@ pub struct WorldArgs {
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Sampling temperature of the model (0 = argmin).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = crate::generate::DEFAULT_TEMPERATURE)]
     pub temperature: f32,
     /// Ground prior of the refiner's worlds, metres (0 = off; see `sgam generate --help`).
     #[arg(long, default_value_t = crate::generate::DEFAULT_GROUND_SNAP_M)]
