@@ -25,6 +25,17 @@ fn check_mesh(path: &Path, mesh: &TriMesh) -> Result<(), IoError> {
     Ok(())
 }
 
+/// Writes `mesh` in the format its extension names: `.ply` (binary, vertex colours), `.obj` or
+/// `.glb` (case-insensitive); any other extension is an error naming the path.
+pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), IoError> {
+    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+        Some("ply") => write_ply(path, mesh),
+        Some("obj") => write_obj(path, mesh),
+        Some("glb") => write_glb(path, mesh),
+        _ => Err(IoError::invalid(path, "unknown mesh format (use .ply, .obj or .glb)")),
+    }
+}
+
 /// Writes a binary little-endian PLY, atomically: `float x y z`, `uchar red green blue` (when
 /// the mesh has colours; sRGB rounded to 8 bits), faces as `list uchar int vertex_indices`.
 pub fn write_ply(path: &Path, mesh: &TriMesh) -> Result<(), IoError> {

@@ -21,5 +21,5 @@ pub mod kid;
 pub mod scene;
 pub mod world;
 
-pub use geometry::{chamfer, median, point_to_mesh_distances};
+pub use geometry::{chamfer, median, point_to_mesh_distances, Sortable};
 pub use image::{disparity_l1, psnr, ssim, ssim_map};

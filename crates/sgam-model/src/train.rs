@@ -61,8 +61,11 @@ pub struct TrainPair {
 
 /// Supplies training batches (random crops of size `crop` x `crop`), drawing randomness from `rng`.
 pub trait PairSource {
+    /// Error type of this source.
+    type Error: std::error::Error + Send + Sync + 'static;
+
     /// Returns `batch` pairs of `crop x crop` pixels.
-    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> anyhow::Result<Vec<TrainPair>>;
+    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>, Self::Error>;
 }
 
 /// Training stage.
@@ -396,8 +399,8 @@ pub enum TrainError {
     #[error(transparent)]
     Model(#[from] ModelError),
     /// The pair source failed.
-    #[error("pair source: {0}")]
-    Source(String),
+    #[error("pair source")]
+    Source(#[source] Box<dyn std::error::Error + Send + Sync>),
     /// A loss or a weight became non-finite; nothing was written after it.
     #[error("training diverged at step {step}: {what} (lower the learning rate); the last checkpoint is kept")]
     Diverged {
@@ -657,10 +660,9 @@ impl Trainer {
     }
 
     /// One optimisation step on a batch from `source`.
-    pub fn step(&mut self, source: &mut dyn PairSource) -> Result<StepReport, TrainError> {
+    pub fn step<S: PairSource + ?Sized>(&mut self, source: &mut S) -> Result<StepReport, TrainError> {
         let cfg = self.train_config.clone();
-        let batch =
-            source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(format!("{e:#}")))?;
+        let batch = source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(Box::new(e)))?;
         self.step_on(&batch)
     }
 
@@ -898,11 +900,11 @@ pub struct TrainSummary {
 /// writing checkpoints into `run_dir` and calling `progress` after every step. A resumed run
 /// must be asked for its stored configuration ([`TrainError::ResumeMismatch`] otherwise) except
 /// `steps`, `ckpt_every`, `val_every` and, when given, `lr_decay_from`.
-pub fn train(
+pub fn train<S: PairSource + ?Sized>(
     run_dir: &Path,
     model_config: &ModelConfig,
     train_config: &TrainConfig,
-    source: &mut dyn PairSource,
+    source: &mut S,
     val: &[TrainPair],
     progress: &mut dyn FnMut(&TrainProgress),
 ) -> Result<TrainSummary, TrainError> {

@@ -251,7 +251,7 @@ mod tests {
         let page = String::from_utf8(page).unwrap();
         assert!(page.contains("\"live\":{\"state\":\"live.json\""));
         // a tiny world: a plane seen by one camera, integrated into the map
-        let cam = crate::generate::synthetic_seed_camera(32);
+        let cam = sgam_pipeline::synthetic_seed_camera(32);
         let renderer = sgam_synth::Renderer::new(&sgam_synth::Scene::generate(1, &Default::default()));
         let frame = renderer.render(&cam, &Default::default()).frame;
         let mut map = TsdfMap::new(TsdfConfig { voxel_size_m: 0.2, trunc_voxels: 4.0, ..TsdfConfig::default() });

@@ -9,11 +9,11 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Image, RgbdFrame};
 use sgam_model::train::ValidationImage;
-use sgam_model::{ModelConfig, PairSource, Stage, TrainConfig, TrainPair};
+use sgam_model::{ModelConfig, Stage, TrainConfig, TrainPair};
 
-use crate::generate::HELD_OUT_SEED_BASE;
+use sgam_pipeline::HELD_OUT_SEED_BASE;
 use crate::guard::{in_range, positive, RunLock};
-use crate::pairs::SynthPairs;
+use sgam_pipeline::SynthPairs;
 use crate::progress;
 
 /// Model architecture presets.
@@ -400,7 +400,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         }
     };
     let summary =
-        sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
+        sgam_model::train(&args.run, &model_config, &cfg, &mut source, &val, &mut on_step)
             .map_err(|e| match e {
                 sgam_model::train::TrainError::ResumeMismatch { run, differences } => {
                     resume_mismatch(&run, &differences)

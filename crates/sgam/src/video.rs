@@ -17,7 +17,7 @@ use openh264::{OpenH264API, Timestamp};
 use sgam_core::{Camera, Image, Intrinsics, Rigid3, TriMesh, Vec3};
 use sgam_map::TsdfMap;
 
-use crate::keyframes::Keyframes;
+use sgam_pipeline::Keyframes;
 
 /// Frame rate of `flythrough.mp4`, frames/s (one generated frame per video frame).
 pub const FLYTHROUGH_FPS: u32 = 15;

@@ -492,7 +492,7 @@ mod tests {
 
     #[test]
     fn up_is_z_for_synthetic_seeds_and_image_up_for_rgb_seeds() {
-        let synthetic = crate::generate::synthetic_seed_camera(32);
+        let synthetic = sgam_pipeline::synthetic_seed_camera(32);
         assert_eq!(up_world(&synthetic), Vec3::Z);
         let rgb_seed = Camera::new(Intrinsics::from_fov_x(32, 32, 1.0), Rigid3::IDENTITY);
         assert_eq!(up_world(&rgb_seed), Vec3::NEG_Y);

@@ -2,12 +2,12 @@
 
 use std::time::Instant;
 
-use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
 use crate::keyframes::{quantise_colour, Keyframes};
+use crate::{PipelineError, Result};
 
 /// Parameters of the loop (everything but the refiner and the trajectory).
 #[derive(Debug, Clone)]
@@ -29,8 +29,7 @@ pub struct GeneratorConfig {
     pub seed: u64,
 }
 
-/// The loop's parameters for the CLEVR-Infinite world (the authors' values, DESIGN.md §4 and
-/// §6): 5 cm voxels, truncation 10 voxels, depth 0.05-20 m, colour from the nearest source
+/// The loop's parameters for the CLEVR-Infinite world (the SGAM authors' values): 5 cm voxels, truncation 10 voxels, depth 0.05-20 m, colour from the nearest source
 /// camera that passes the geometry check, the nearest 5 sources within 1 m, weight threshold 1.
 /// Generation (`sgam generate`, whose options override fields of it) and the generative
 /// stage-2 training pairs ([`crate::codepairs`]) both start from this one value.
@@ -166,7 +165,7 @@ impl<R: Refiner> WorldGenerator<R> {
         timings.warp_ms = t.lap() - render_ms;
         timings.missing_fraction = guidance.missing_fraction();
         // complete the incomplete RGB-D image in one shot
-        let mut frame = self.refiner.refine(&guidance).map_err(anyhow::Error::new).context("refiner failed")?;
+        let mut frame = self.refiner.refine(&guidance).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         quantise_colour(&mut frame.colour);
         timings.refine_ms = t.lap();
         // fuse the new frame into the map, once

@@ -12,9 +12,12 @@
 
 use std::collections::HashSet;
 
-use anyhow::{bail, Result};
 use sgam_core::{Camera, Intrinsics, Rigid3, Vec3};
 use sgam_map::TsdfMap;
+
+use crate::error::config_error;
+use crate::poses::PoseSource;
+use crate::Result;
 
 /// Width of the coverage renders.
 const SCORE_WIDTH: u32 = 64;
@@ -35,7 +38,7 @@ impl GreedyPlanner {
     /// the poses generated so far (seed first), used to restore the visited set on resume.
     pub fn new(seed: &Camera, step_m: f32, side: usize, done: &[Camera]) -> Result<Self> {
         if !(step_m.is_finite() && step_m > 0.0) {
-            bail!("--step {step_m} must be a positive distance in metres");
+            config_error!("--step {step_m} must be a positive distance in metres");
         }
         let mut p = Self {
             seed: seed.world_from_camera,
@@ -126,6 +129,12 @@ impl GreedyPlanner {
         frontier.dedup();
         let (ci, cj) = self.current;
         frontier.into_iter().min_by_key(|&(i, j)| ((i - ci).pow(2) + (j - cj).pow(2), i, j))
+    }
+}
+
+impl PoseSource for GreedyPlanner {
+    fn next_camera(&mut self, map: &mut TsdfMap) -> Option<Camera> {
+        self.next(map)
     }
 }
 
