@@ -27,9 +27,8 @@ fn cpu_ms() -> f64 {
         / 1e6
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+fn median(v: Vec<f64>) -> f64 {
+    sgam_metrics::median(&v).unwrap_or(f64::NAN)
 }
 
 /// Ground plane at z = -11.695 with spheres on it; camera pitched down, OpenCV axes.

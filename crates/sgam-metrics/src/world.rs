@@ -1,4 +1,4 @@
-//! World-level object statistics (DESIGN.md §7 "World level"): a mesh (metres, world frame, z up)
+//! World-level object statistics: a mesh (metres, world frame, z up)
 //! becomes a 10 cm height field; the area outside the seed's footprint (the "new area") is split
 //! into ground and objects, and we report object density, footprints, colour saturation and ground
 //! roughness. One-step scores cannot see a degenerate world (all ground, or all blobs); these can.

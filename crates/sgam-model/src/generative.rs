@@ -2,8 +2,9 @@
 //! cell, so that sampling draws plausible completions instead of averaging them.
 //!
 //! A stage-2 encoder trained with L1 through the frozen decoder predicts the mean of everything
-//! that could fill a missing cell: grey ground, or the neighbouring colour continued (DESIGN.md
-//! §5). Here the target is the code the frozen stage-1 encoder assigns to the clean target
+//! that could fill a missing cell: grey ground, or the neighbouring colour continued (measured
+//! on our first models: objects never start or end, the ground drifts). Here the target is the
+//! code the frozen stage-1 encoder assigns to the clean target
 //! ([`target_codes`]), and the loss is the cross-entropy of that index under
 //!
 //! `p(k | guidance) = softmax_k(-||z - e_k||^2 / tau)`

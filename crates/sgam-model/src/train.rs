@@ -1,4 +1,5 @@
-//! Two-stage training (DESIGN.md §5) as library functions the CLI calls.
+//! Two-stage training (stage 1: the VQ autoencoder on clean RGB-D; stage 2: the encoder on
+//! incomplete -> complete pairs, codebook and decoder frozen) as library functions the CLI calls.
 //!
 //! - Stage 1: autoencode clean RGB-D (zero mask), optionally without quantization for the first
 //!   `warmup_no_quant_steps`; L1 + gradient-L1 perceptual + quantizer loss, hinge PatchGAN from
@@ -534,7 +535,7 @@ fn psnr_rgb(pred: &[f32], target: &[f32], b: usize, hw: usize) -> f32 {
         }
     }
     let mse = (se / n.max(1) as f64).max(1e-12);
-    (10.0 * (1.0 / mse).log10()) as f32
+    sgam_metrics::psnr_db(mse, 1.0) as f32
 }
 
 impl Trainer {

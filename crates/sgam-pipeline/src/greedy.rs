@@ -12,7 +12,7 @@
 
 use std::collections::HashSet;
 
-use sgam_core::{Camera, Intrinsics, Rigid3, Vec3};
+use sgam_core::{Camera, Intrinsics, Rigid3};
 use sgam_map::TsdfMap;
 
 use crate::error::config_error;
@@ -63,10 +63,7 @@ impl GreedyPlanner {
     }
 
     fn pose_of(&self, (i, j): (i32, i32)) -> Rigid3 {
-        Rigid3::new(
-            self.seed.rotation,
-            self.seed.translation + Vec3::new(i as f32 * self.step_m, j as f32 * self.step_m, 0.0),
-        )
+        sgam_core::trajectory::grid_pose(&self.seed, i, j, self.step_m)
     }
 
     fn in_grid(&self, (i, j): (i32, i32)) -> bool {

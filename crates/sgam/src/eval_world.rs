@@ -1,5 +1,6 @@
 //! `sgam eval world` and `sgam eval table`: judge generated worlds against the true world of
-//! the same held-out seed along the same trajectory (DESIGN.md §7, "World level").
+//! the same held-out seed along the same trajectory (world-level statistics, KID, loop
+//! consistency).
 //!
 //! For each held-out seed scene (from 1,000,000; never used in training) the refiner and the
 //! oracle (ground truth of the synthetic world) are unrolled along the same trajectory by the
@@ -231,7 +232,7 @@ fn loop_consistency(
     root: &Path,
 ) -> Result<(f64, f64)> {
     let dir = root.join(format!("seed-{seed_scene}")).join(format!("{label}-loop"));
-    let last = dir.join(format!("rgb/{LOOP_STEPS:05}.png"));
+    let last = sgam_pipeline::Keyframes::frame_paths(&dir, LOOP_STEPS).0;
     if !(dir.join("run.json").exists() && last.exists()) {
         if dir.exists() {
             std::fs::remove_dir_all(&dir)
@@ -254,7 +255,7 @@ fn loop_consistency(
         }
         std::fs::remove_dir_all(dir.join("run")).with_context(|| format!("{}: cannot tidy", dir.display()))?;
     }
-    let first = sgam_io::read_rgb(&dir.join("rgb/00000.png"))?;
+    let first = sgam_io::read_rgb(&sgam_pipeline::Keyframes::frame_paths(&dir, 0).0)?;
     let back = sgam_io::read_rgb(&last)?;
     Ok((
         sgam_metrics::psnr(&back, &first, None).unwrap_or(f64::NAN),

@@ -452,7 +452,7 @@ impl LiveState {
             finished: false,
             up_world: cameras.first().map(up_world).unwrap_or(Vec3::Z).to_array(),
             poses: cameras.iter().map(pose_rows).collect(),
-            frames: (0..cameras.len()).map(|i| format!("rgb/{i:05}.png")).collect(),
+            frames: (0..cameras.len()).map(|i| sgam_pipeline::frame_file_names(i).0).collect(),
             mesh: None,
         }
     }
