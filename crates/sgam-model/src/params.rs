@@ -316,5 +316,5 @@ pub fn save_safetensors<M: Module>(
 /// Writes `bytes` to `path` atomically with [`sgam_io::write_atomic`] (a uniquely named
 /// temporary sibling, fsynced, renamed; removed on failure); errors name `path`.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ModelError> {
-    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, bytes)).map_err(|e| ModelError::Io(e.to_string()))
+    Ok(sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, bytes))?)
 }

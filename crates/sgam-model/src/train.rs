@@ -469,7 +469,7 @@ fn freeze_for_stage(model: VqModel, stage: Stage) -> VqModel {
 }
 
 fn read_weights(path: &Path) -> Result<std::collections::BTreeMap<String, crate::params::NamedTensor>, ModelError> {
-    let bytes = std::fs::read(path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+    let bytes = std::fs::read(path).map_err(|e| ModelError::io(&path, e))?;
     Ok(from_safetensors_bytes(&bytes).map_err(|e| ModelError::Weights(format!("{}: {e}", path.display())))?.0)
 }
 
@@ -491,22 +491,24 @@ pub const CHECKPOINT_DIR: &str = "ckpt";
 pub fn read_checkpoint(run_dir: &Path) -> Result<Option<(PathBuf, CheckpointState)>, ModelError> {
     let Some(dir) = committed_folder(run_dir, CHECKPOINT_DIR) else {
         if run_dir.join("optim_model.bpk").exists() {
-            return Err(ModelError::Checkpoint(format!(
-                "{}: a checkpoint in the layout of an older sgam (five separate files that an interrupted save \
-                 could leave mixed); it cannot be verified, so it is not resumed: start a new run with \
-                 --init {}",
-                run_dir.display(),
-                run_dir.join("model.safetensors").display()
-            )));
+            return Err(ModelError::checkpoint(
+                run_dir,
+                format!(
+                    "a checkpoint in the layout of an older sgam (five separate files that an interrupted save \
+                     could leave mixed); it cannot be verified, so it is not resumed: start a new run with \
+                     --init {}",
+                    run_dir.join("model.safetensors").display()
+                ),
+            ));
         }
         return Ok(None);
     };
     verify_folder(&dir)?;
     let path = dir.join("state.json");
-    let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+    let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
     let state: CheckpointState = serde_json::from_slice(&bytes)
-        .map_err(|e| ModelError::Checkpoint(format!("{}: not a training state: {e}", path.display())))?;
-    let bad = |m: String| ModelError::Checkpoint(format!("{}: {m}", path.display()));
+        .map_err(|e| ModelError::checkpoint(&path, format!("not a training state: {e}")))?;
+    let bad = |m: String| ModelError::checkpoint(&path, format!("{m}"));
     if state.version != STATE_VERSION {
         return Err(bad(format!("state version {} (this build reads {STATE_VERSION})", state.version)));
     }
@@ -579,7 +581,7 @@ impl Trainer {
         if let Some(what) = self.non_finite_weight() {
             return Err(TrainError::Diverged { step: self.step, what });
         }
-        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::Io(format!("creating {}: {e}", run_dir.display())))?;
+        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::io(&run_dir, e))?;
         let meta = crate::refiner::weight_metadata(&self.model_config)?;
         let state = CheckpointState {
             version: STATE_VERSION,
@@ -592,18 +594,18 @@ impl Trainer {
             usage: self.usage.clone(),
             buffer: self.buffer.clone(),
         };
-        let json = serde_json::to_vec(&state).map_err(|e| ModelError::Checkpoint(format!("serialising state: {e}")))?;
+        let json = serde_json::to_vec(&state).map_err(|e| ModelError::state("serialising state", e))?;
         let dir = commit_folder(run_dir, CHECKPOINT_DIR, |new| {
             save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
             save_safetensors(&self.disc, &new.join("disc.safetensors"), WeightPrecision::F32, None)?;
             for (optim, name) in [(&self.optim_model, "optim_model.bpk"), (&self.optim_disc, "optim_disc.bpk")] {
-                let bytes = optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer {name}: {e}")))?;
+                let bytes = optim.into_bytes().map_err(|e| ModelError::state(format!("optimizer {name}"), e))?;
                 write_atomic(&new.join(name), &bytes)?;
             }
             write_atomic(&new.join("state.json"), &json)
         })?;
         let weights = std::fs::read(dir.join("model.safetensors"))
-            .map_err(|e| ModelError::Io(format!("reading {}: {e}", dir.join("model.safetensors").display())))?;
+            .map_err(|e| ModelError::io(&dir.join("model.safetensors"), e))?;
         write_atomic(&run_dir.join("model.safetensors"), &weights)?;
         let summary = RunSummary {
             step: self.step,
@@ -611,7 +613,7 @@ impl Trainer {
             train_config: self.train_config.clone(),
         };
         let json = serde_json::to_vec_pretty(&summary)
-            .map_err(|e| ModelError::Checkpoint(format!("serialising the summary: {e}")))?;
+            .map_err(|e| ModelError::state("serialising the summary", e))?;
         write_atomic(&run_dir.join("config.json"), &json)?;
         Ok(())
     }
@@ -620,7 +622,7 @@ impl Trainer {
     /// overrides the stored total when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
         let (dir, state) = read_checkpoint(run_dir)?.ok_or_else(|| {
-            ModelError::Checkpoint(format!("{}: no checkpoint ({CHECKPOINT_DIR}/)", run_dir.display()))
+            ModelError::checkpoint(&run_dir, format!("no checkpoint ({CHECKPOINT_DIR}/)"))
         })?;
         let mut train_config = state.train_config.clone();
         if let Some(s) = steps {
@@ -637,11 +639,11 @@ impl Trainer {
             let path = dir.join(name);
             let optim = adam(&train_config)
                 .load(&path)
-                .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", path.display())))?;
+                .map_err(|e| ModelError::checkpoint(&path, format!("cannot read: {e}")))?;
             optims.push(optim);
         }
-        let optim_disc = optims.pop().ok_or_else(|| ModelError::Checkpoint("optimizer".into()))?;
-        let optim_model = optims.pop().ok_or_else(|| ModelError::Checkpoint("optimizer".into()))?;
+        let optim_disc = optims.pop().ok_or_else(|| ModelError::checkpoint(&dir, "optimizer missing"))?;
+        let optim_model = optims.pop().ok_or_else(|| ModelError::checkpoint(&dir, "optimizer missing"))?;
         let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
         rng.set_stream(state.rng_stream);
         rng.set_word_pos(state.rng_word_pos);
