@@ -92,7 +92,7 @@ fn bench_clevr() {
     for i in 0..steps {
         let c0 = cpu_ms();
         let t0 = Instant::now();
-        let rendered = map.render_depth(&cams[i]);
+        let rendered = map.remesh_and_rasterize_depth(&cams[i]);
         let c1 = cpu_ms();
         let t1 = Instant::now();
         let sources: Vec<SourceView> =

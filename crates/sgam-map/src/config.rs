@@ -18,10 +18,10 @@ pub struct TsdfConfig {
     /// `trunc_voxels * voxel_size_m`).
     pub trunc_voxels: f32,
     /// Depth readings below this planar depth (metres) are ignored when integrating; also the
-    /// near plane of [`crate::TsdfMap::render`] and [`crate::TsdfMap::ray_cast`].
+    /// near plane of [`crate::TsdfMap::remesh_and_rasterize`] and [`crate::TsdfMap::ray_cast`].
     pub depth_min_m: f32,
     /// Depth readings above this planar depth (metres) are ignored when integrating; also the far
-    /// plane of [`crate::TsdfMap::render`] and [`crate::TsdfMap::ray_cast`].
+    /// plane of [`crate::TsdfMap::remesh_and_rasterize`] and [`crate::TsdfMap::ray_cast`].
     pub depth_max_m: f32,
     /// Optional cap on the per-voxel weight (`None` = the paper's unbounded running average).
     pub weight_cap: Option<f32>,

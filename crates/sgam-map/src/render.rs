@@ -170,13 +170,13 @@ impl TsdfMap {
     /// Blocks are split into contiguous chunks rasterized in parallel, each into its own
     /// z-buffer; the merge keeps the nearest hit and, on exact ties, the earlier chunk, so the
     /// result is deterministic whatever the number of threads.
-    pub fn render(&mut self, camera: &Camera) -> Rendered {
+    pub fn remesh_and_rasterize(&mut self, camera: &Camera) -> Rendered {
         let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
         self.update_mesh(threshold);
         self.rasterize(camera)
     }
 
-    /// The rasterizer behind [`TsdfMap::render`], on the block meshes as they are (no
+    /// The rasterizer behind [`TsdfMap::remesh_and_rasterize`], on the block meshes as they are (no
     /// re-meshing).
     pub fn rasterize(&self, camera: &Camera) -> Rendered {
         self.rasterize_range(camera, self.config.depth_min_m, self.config.depth_max_m)
@@ -214,10 +214,11 @@ impl TsdfMap {
         out
     }
 
-    /// Planar depth only (metres, `0` where nothing was hit) of [`TsdfMap::render`]: what the
-    /// generator's guidance needs. Re-meshes dirty blocks first, like `render`; the depth is
-    /// bit-identical to `render(camera).depth_m`, without the colour and facing work.
-    pub fn render_depth(&mut self, camera: &Camera) -> Image<f32> {
+    /// Planar depth only (metres, `0` where nothing was hit) of [`TsdfMap::remesh_and_rasterize`]: what the
+    /// generator's guidance needs. Re-meshes dirty blocks first, like `remesh_and_rasterize`; the
+    /// depth is bit-identical to `remesh_and_rasterize(camera).depth_m`, without the colour and
+    /// facing work.
+    pub fn remesh_and_rasterize_depth(&mut self, camera: &Camera) -> Image<f32> {
         let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
         self.update_mesh(threshold);
         self.rasterize_depth(camera)

@@ -103,7 +103,7 @@ fn integration_meshing_and_rendering_cost_depends_on_the_frame_not_the_map() {
     let mut small = TsdfMap::new(cfg);
     let first = small.integrate(&probe_frame, &probe);
     small.update_mesh(1.0);
-    let render_small = small.render(&probe);
+    let render_small = small.remesh_and_rasterize(&probe);
 
     // A large map: many frames far away along x, then the same probe frame.
     let mut large = TsdfMap::new(cfg);
@@ -121,7 +121,7 @@ fn integration_meshing_and_rendering_cost_depends_on_the_frame_not_the_map() {
     assert_eq!(second.voxels_updated, first.voxels_updated);
     let remeshed = large.update_mesh(1.0);
     assert!(remeshed <= 8 * second.blocks_updated);
-    let render_large = large.render(&probe);
+    let render_large = large.remesh_and_rasterize(&probe);
     assert_eq!(render_large.blocks_visited, render_small.blocks_visited);
     assert_eq!(render_large.depth_m, render_small.depth_m);
     // Integrating the probe again touches the same blocks, allocates none.
@@ -147,7 +147,7 @@ fn bad_frames_and_poses_do_not_panic() {
     let mut bad = cam;
     bad.world_from_camera.translation.x = f32::NAN;
     assert_eq!(map.integrate(&frame, &bad).voxels_updated, 0);
-    assert!(!map.render(&bad).covered.iter().any(|c| *c));
+    assert!(!map.remesh_and_rasterize(&bad).covered.iter().any(|c| *c));
     assert!(!map.ray_cast(&bad).covered.iter().any(|c| *c));
     // A frame smaller than the intrinsics claim (8 x 6 against 32 x 24) is read at its own size:
     // it integrates exactly like the full frame with every pixel outside its 8 x 6 corner made

@@ -64,7 +64,7 @@ pub fn render_guidance(
     seed: u64,
 ) -> (Guidance, f64) {
     let t = Instant::now();
-    let depth_m = map.render_depth(camera);
+    let depth_m = map.remesh_and_rasterize_depth(camera);
     let render_ms = t.elapsed().as_secs_f64() * 1e3;
     let warped = warp_colour(camera, &depth_m, sources, warp);
     let guidance = Guidance {

@@ -85,7 +85,7 @@ impl GreedyPlanner {
         let k = &self.intrinsics;
         let h = ((SCORE_WIDTH as f32 * k.height as f32 / k.width.max(1) as f32).round() as u32).max(1);
         let cam = Camera::new(k.resized(SCORE_WIDTH, h), self.pose_of(cell));
-        let r = map.render(&cam);
+        let r = map.remesh_and_rasterize(&cam);
         r.covered.iter().zip(&r.back_facing).filter(|(c, b)| **c && !**b).count()
     }
 

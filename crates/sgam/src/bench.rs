@@ -210,13 +210,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 continue;
             }
             Subject::Render => {
-                std::hint::black_box(map.render_depth(cam));
+                std::hint::black_box(map.remesh_and_rasterize_depth(cam));
             }
             Subject::RayCast => {
                 std::hint::black_box(map.ray_cast(cam));
             }
             Subject::Warp => {
-                let depth = map.render_depth(cam);
+                let depth = map.remesh_and_rasterize_depth(cam);
                 let t1 = Instant::now();
                 std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
@@ -225,7 +225,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 continue;
             }
             Subject::MapStep => {
-                let depth = map.render_depth(cam);
+                let depth = map.remesh_and_rasterize_depth(cam);
                 let t1 = Instant::now();
                 std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 let t2 = Instant::now();
