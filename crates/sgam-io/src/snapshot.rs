@@ -49,7 +49,8 @@ pub fn parse_snapshot<'a>(path: &Path, bytes: &'a [u8], version: u32) -> Result<
     let stored = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
     if stored != version {
         // format 1 had no version field: the state's length followed the magic, then its JSON
-        let len = u64::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11], bytes[12], bytes[13], bytes[14], bytes[15]]);
+        let len =
+            u64::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11], bytes[12], bytes[13], bytes[14], bytes[15]]);
         let v1 = len.checked_add(16).is_some_and(|end| end <= bytes.len() as u64) && bytes[16] == b'{';
         return Err(bad(if v1 {
             format!(

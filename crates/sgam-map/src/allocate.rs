@@ -46,7 +46,13 @@ impl TileStats {
     pub(crate) const EMPTY: TileStats = TileStats { min: f32::INFINITY, max: f32::NEG_INFINITY, count: 0 };
 
     /// Over the usable `depth[v * w + u]` for `u in u0..u1`, `v in v0..v1`.
-    pub(crate) fn of(depth: &[f32], usable: Usable, w: usize, (u0, u1): (usize, usize), (v0, v1): (usize, usize)) -> Self {
+    pub(crate) fn of(
+        depth: &[f32],
+        usable: Usable,
+        w: usize,
+        (u0, u1): (usize, usize),
+        (v0, v1): (usize, usize),
+    ) -> Self {
         // Eight lanes of masked selects (`wide`); a comparison with NaN is false, so unusable
         // readings never enter the minimum or maximum.
         let (lo, hi) = (f32x8::splat(usable.lo), f32x8::splat(usable.hi));
@@ -98,7 +104,13 @@ impl TileStats {
 /// slanted surface) is covered by one tube per occupied truncation-wide depth bin when its bins
 /// average 16 pixels or more. Every pixel's own segment is walked instead where there is no tiling (`s = 1`), where
 /// bins hold fewer pixels, and where a tube would need more than 64 cells.
-pub(crate) fn touched_blocks(depth: &[f32], w: usize, h: usize, camera: &Camera, cfg: &TsdfConfig) -> (Vec<IVec3>, usize) {
+pub(crate) fn touched_blocks(
+    depth: &[f32],
+    w: usize,
+    h: usize,
+    camera: &Camera,
+    cfg: &TsdfConfig,
+) -> (Vec<IVec3>, usize) {
     let trunc = cfg.trunc_m();
     let inv_trunc = 1.0 / trunc;
     let usable = Usable::new(cfg);
@@ -338,4 +350,3 @@ fn sign(x: f32) -> i32 {
         0
     }
 }
-

@@ -480,8 +480,8 @@ fn row_flags(tsdf: f32x8, weight: f32x8) -> u8 {
 mod tests {
     use super::*;
     use crate::allocate::{walk_cells, TileStats};
-    use rustc_hash::FxHashSet;
     use rand::{Rng, SeedableRng};
+    use rustc_hash::FxHashSet;
 
     /// Brute force: cells containing dense samples of the segment.
     fn sampled_cells(a: Vec3, b: Vec3) -> FxHashSet<IVec3> {

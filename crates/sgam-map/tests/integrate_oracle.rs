@@ -96,18 +96,14 @@ fn reference_update(r: &mut Ref, centre: Vec3, camera: &Camera, f: &RgbdFrame, c
 
 #[test]
 fn the_simd_update_equals_a_scalar_reference_integrator() {
-    let cfg = TsdfConfig {
-        voxel_size_m: 0.05,
-        trunc_voxels: 4.0,
-        depth_min_m: 0.1,
-        depth_max_m: 3.0,
-        weight_cap: Some(3.0),
-    };
+    let cfg =
+        TsdfConfig { voxel_size_m: 0.05, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 3.0, weight_cap: Some(3.0) };
     let mut map = TsdfMap::new(cfg);
-    let cameras: Vec<Camera> = [(0.0, 0.0, 0.0), (0.13, 0.05, 0.02), (-0.21, 0.11, -0.07), (0.3, -0.17, 0.1), (0.04, 0.2, 0.0)]
-        .iter()
-        .map(|&(x, y, z)| Camera::new(intrinsics(), Rigid3::new(glam::Mat3::IDENTITY, Vec3::new(x, y, z))))
-        .collect();
+    let cameras: Vec<Camera> =
+        [(0.0, 0.0, 0.0), (0.13, 0.05, 0.02), (-0.21, 0.11, -0.07), (0.3, -0.17, 0.1), (0.04, 0.2, 0.0)]
+            .iter()
+            .map(|&(x, y, z)| Camera::new(intrinsics(), Rigid3::new(glam::Mat3::IDENTITY, Vec3::new(x, y, z))))
+            .collect();
     let frames: Vec<RgbdFrame> = cameras.iter().map(|c| frame(c.world_from_camera.translation)).collect();
     for (c, f) in cameras.iter().zip(&frames) {
         map.integrate(f, c);
@@ -172,7 +168,10 @@ fn the_simd_update_equals_a_scalar_reference_integrator() {
                     let p = c.world_from_camera.transform_point(ray * z);
                     let g = (p / vs).floor().as_ivec3();
                     in_band += 1;
-                    assert!(allocated.contains(&g.div_euclid(IVec3::splat(8))), "pixel ({u}, {v}) at {z} m: block not allocated");
+                    assert!(
+                        allocated.contains(&g.div_euclid(IVec3::splat(8))),
+                        "pixel ({u}, {v}) at {z} m: block not allocated"
+                    );
                 }
             }
         }

@@ -81,8 +81,7 @@ pub fn commit_folder(
         files.insert(file_name, entry(&item.path())?);
     }
     let manifest = Manifest { format: "sgam-checkpoint".into(), version: MANIFEST_VERSION, files };
-    let json = serde_json::to_vec_pretty(&manifest)
-        .map_err(|e| ModelError::state("serialising the manifest", e))?;
+    let json = serde_json::to_vec_pretty(&manifest).map_err(|e| ModelError::state("serialising the manifest", e))?;
     write_atomic(&new.join(MANIFEST), &json)?;
     if cur.exists() {
         if old.exists() {

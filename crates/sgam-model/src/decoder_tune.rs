@@ -318,8 +318,7 @@ impl DecoderTuner {
             ));
         }
         let weights = dir.join("model.safetensors");
-        let wbytes =
-            std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
+        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
         let tensors =
             from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
         let mut config = state.config;
@@ -328,8 +327,7 @@ impl DecoderTuner {
         }
         let mut t = Self::new(&state.model_config, &tensors, encoder, encoder_config, &config)?;
         let optim = dir.join("optim.bpk");
-        t.optim =
-            adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
+        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
         t.step = state.step;
         Ok(t)
     }

@@ -698,8 +698,7 @@ impl CodeTrainer {
             return Err(ModelError::checkpoint(&path, format!("log_tau is {}", state.log_tau)));
         }
         let weights = dir.join("model.safetensors");
-        let wbytes =
-            std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
+        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
         let tensors =
             from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
         let mut train_config = state.train_config;
@@ -711,14 +710,12 @@ impl CodeTrainer {
         }
         let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
         let optim = dir.join("optim.bpk");
-        t.optim =
-            adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
+        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
         // (checkpoints of the first training run have no optim_tau.bpk: tau's Adam restarts)
         let optim_tau = dir.join("optim_tau.bpk");
         if optim_tau.exists() {
-            t.optim_tau = adam()
-                .load(&optim_tau)
-                .map_err(|e| ModelError::checkpoint(&optim_tau, format!("cannot read: {e}")))?;
+            t.optim_tau =
+                adam().load(&optim_tau).map_err(|e| ModelError::checkpoint(&optim_tau, format!("cannot read: {e}")))?;
         }
         t.temperature = CodeTemperature::from_log(state.log_tau, &t.device).train();
         t.step = state.step;

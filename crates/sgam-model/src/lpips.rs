@@ -230,9 +230,7 @@ fn unit_normalise(f: Tensor<4>) -> Tensor<4> {
 /// The message of a model error without its category prefix (for re-wrapping with a path).
 fn inner_message(e: ModelError) -> String {
     match e {
-        ModelError::Config(m)
-        | ModelError::Input(m)
-        | ModelError::Weights(m) => m,
+        ModelError::Config(m) | ModelError::Input(m) | ModelError::Weights(m) => m,
         other => other.to_string(),
     }
 }

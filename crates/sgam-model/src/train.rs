@@ -612,8 +612,7 @@ impl Trainer {
             model_config: self.model_config.clone(),
             train_config: self.train_config.clone(),
         };
-        let json = serde_json::to_vec_pretty(&summary)
-            .map_err(|e| ModelError::state("serialising the summary", e))?;
+        let json = serde_json::to_vec_pretty(&summary).map_err(|e| ModelError::state("serialising the summary", e))?;
         write_atomic(&run_dir.join("config.json"), &json)?;
         Ok(())
     }
@@ -621,9 +620,8 @@ impl Trainer {
     /// Resumes from the committed checkpoint of `run_dir` ([`read_checkpoint`]). `steps`
     /// overrides the stored total when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
-        let (dir, state) = read_checkpoint(run_dir)?.ok_or_else(|| {
-            ModelError::checkpoint(&run_dir, format!("no checkpoint ({CHECKPOINT_DIR}/)"))
-        })?;
+        let (dir, state) = read_checkpoint(run_dir)?
+            .ok_or_else(|| ModelError::checkpoint(&run_dir, format!("no checkpoint ({CHECKPOINT_DIR}/)")))?;
         let mut train_config = state.train_config.clone();
         if let Some(s) = steps {
             train_config.steps = s;
@@ -665,7 +663,8 @@ impl Trainer {
     /// One optimisation step on a batch from `source`.
     pub fn step<S: PairSource + ?Sized>(&mut self, source: &mut S) -> Result<StepReport, TrainError> {
         let cfg = self.train_config.clone();
-        let batch = source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(Box::new(e)))?;
+        let batch =
+            source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(Box::new(e)))?;
         self.step_on(&batch)
     }
 

@@ -200,7 +200,8 @@ const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
 pub fn write_cache(path: &std::path::Path, key: &CacheKey, pairs: &[CodePair]) -> Result<()> {
     let mut b: Vec<u8> = Vec::new();
     b.extend_from_slice(CACHE_MAGIC);
-    let json = serde_json::to_vec(key).map_err(|e| PipelineError::Corrupt { path: path.to_path_buf(), msg: e.to_string() })?;
+    let json =
+        serde_json::to_vec(key).map_err(|e| PipelineError::Corrupt { path: path.to_path_buf(), msg: e.to_string() })?;
     b.extend_from_slice(&(json.len() as u64).to_le_bytes());
     b.extend_from_slice(&json);
     b.extend_from_slice(&(pairs.len() as u64).to_le_bytes());

@@ -116,7 +116,11 @@ impl RunConfig {
             config_error!("snapshot / mesh interval out of range");
         }
         if !(1..=64).contains(&self.k_sources) || !(self.source_radius_m > 0.0 && self.source_radius_m <= 1000.0) {
-            config_error!("sources: {} within {} m (accepted 1..=64 within (0, 1000] m)", self.k_sources, self.source_radius_m);
+            config_error!(
+                "sources: {} within {} m (accepted 1..=64 within (0, 1000] m)",
+                self.k_sources,
+                self.source_radius_m
+            );
         }
         if let SeedSpec::Synthetic { res, .. } = self.seed {
             if !(16..=MAX_RES).contains(&res) {
@@ -124,7 +128,9 @@ impl RunConfig {
             }
         }
         match self.trajectory {
-            TrajectorySpec::Zigzag { side, .. } | TrajectorySpec::Boustrophedon { side, .. } | TrajectorySpec::Greedy { side, .. }
+            TrajectorySpec::Zigzag { side, .. }
+            | TrajectorySpec::Boustrophedon { side, .. }
+            | TrajectorySpec::Greedy { side, .. }
                 if !(1..=MAX_GRID.max(1 + MAX_STEPS.isqrt())).contains(&side) =>
             {
                 config_error!("grid side {side} out of range")

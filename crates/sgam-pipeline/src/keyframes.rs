@@ -130,7 +130,8 @@ impl Keyframes {
         let (rgb, depth) = Self::frame_paths(&self.root, index);
         let colour = sgam_io::read_rgb(&rgb)?;
         let depth_m = sgam_io::read_npy_f32(&depth)?;
-        let frame = Arc::new(RgbdFrame::try_new(colour, depth_m).map_err(|source| PipelineError::Keyframe { index, source })?);
+        let frame =
+            Arc::new(RgbdFrame::try_new(colour, depth_m).map_err(|source| PipelineError::Keyframe { index, source })?);
         self.insert_cache(index, frame.clone());
         Ok(frame)
     }

@@ -49,5 +49,7 @@ pub use refiners::{
     BUNDLED_MODEL,
 };
 pub use run::{Generated, Quiet, Resume, RunObserver};
+pub use seeds::{
+    check_intrinsics, synthetic_seed_camera, Preset, Seed, SeedSpec, CLEVR, GOOGLE_EARTH, HELD_OUT_SEED_BASE,
+};
 pub use snapshot::save_map;
-pub use seeds::{check_intrinsics, synthetic_seed_camera, Preset, Seed, SeedSpec, CLEVR, GOOGLE_EARTH, HELD_OUT_SEED_BASE};

@@ -178,8 +178,8 @@ pub fn read_pose_file(path: &Path) -> Result<Vec<Rigid3>> {
         let t = sgam_io::read_nerf_transforms(path)?;
         return Ok(t.frames.iter().map(|f| f.world_from_camera).collect());
     }
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| sgam_io::IoError::Io { path: path.to_path_buf(), source: e })?;
+    let text =
+        std::fs::read_to_string(path).map_err(|e| sgam_io::IoError::Io { path: path.to_path_buf(), source: e })?;
     let cols = text
         .lines()
         .map(str::trim)

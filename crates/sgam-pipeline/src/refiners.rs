@@ -81,7 +81,9 @@ pub fn model_refiner(model: Option<&Path>, options: RefinerOptions) -> Result<Vq
 /// the seed's synthetic world).
 pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
     Ok(match spec {
-        RefinerSpec::Model { model, options } => AnyRefiner::Model(Box::new(model_refiner(model.as_deref(), *options)?)),
+        RefinerSpec::Model { model, options } => {
+            AnyRefiner::Model(Box::new(model_refiner(model.as_deref(), *options)?))
+        }
         RefinerSpec::Null { fill } => AnyRefiner::Null(NullRefiner { fill: *fill }),
         RefinerSpec::Oracle => {
             let Some(renderer) = seed.renderer.clone() else {

@@ -8,7 +8,9 @@ use std::time::Instant;
 use sgam_map::TsdfMap;
 
 use crate::snapshot::{write_snapshot, SnapshotState};
-use crate::{build_refiner, AnyRefiner, Keyframes, PipelineError, Result, RunConfig, Seed, StepTimings, WorldGenerator};
+use crate::{
+    build_refiner, AnyRefiner, Keyframes, PipelineError, Result, RunConfig, Seed, StepTimings, WorldGenerator,
+};
 
 /// The generator of a run.
 pub type RunGenerator = WorldGenerator<AnyRefiner>;

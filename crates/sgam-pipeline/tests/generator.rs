@@ -20,7 +20,13 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
         trajectory,
         steps,
         refiner,
-        map: MapSettings { voxel_size_m: 0.05, trunc_voxels: 10.0, depth_min_m: 0.05, depth_max_m: 20.0, weight_cap: None },
+        map: MapSettings {
+            voxel_size_m: 0.05,
+            trunc_voxels: 10.0,
+            depth_min_m: 0.05,
+            depth_max_m: 20.0,
+            weight_cap: None,
+        },
         k_sources: 5,
         source_radius_m: 1.0,
         no_map: false,
@@ -155,7 +161,10 @@ fn a_snapshot_of_another_format_version_is_refused_with_a_clear_error() {
     bytes[8..12].copy_from_slice(&2u32.to_le_bytes());
     std::fs::write(&path, &bytes).unwrap();
     let e = read_snapshot(tmp.path()).unwrap_err().to_string();
-    assert!(e.contains("snapshot.bin") && e.contains("version 2") && e.contains(&format!("format {SNAPSHOT_VERSION}")), "{e}");
+    assert!(
+        e.contains("snapshot.bin") && e.contains("version 2") && e.contains(&format!("format {SNAPSHOT_VERSION}")),
+        "{e}"
+    );
 }
 
 #[test]

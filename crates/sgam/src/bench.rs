@@ -149,8 +149,9 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
         all.push(gen.step(&Camera::new(seed_cam.intrinsics, *p))?);
     }
     let timed = &all[warm..];
-    let med =
-        |f: fn(&sgam_pipeline::StepTimings) -> f64| sgam_metrics::median(&timed.iter().map(f).collect::<Vec<f64>>()).unwrap_or(0.0);
+    let med = |f: fn(&sgam_pipeline::StepTimings) -> f64| {
+        sgam_metrics::median(&timed.iter().map(f).collect::<Vec<f64>>()).unwrap_or(0.0)
+    };
     let ms: Vec<f64> = timed.iter().map(|t| t.total_ms).collect();
     let split = json!({
         "sources_ms": med(|t| t.sources_ms), "render_ms": med(|t| t.render_ms), "warp_ms": med(|t| t.warp_ms),

@@ -217,4 +217,3 @@ pub fn run(args: FuseArgs) -> Result<()> {
     }
     Ok(())
 }
-

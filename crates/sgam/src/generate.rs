@@ -343,7 +343,6 @@ fn parse_intrinsics(s: &str) -> std::result::Result<[f32; 4], String> {
     }
 }
 
-
 /// Side of the square grid of the grid trajectories (zig-zag, boustrophedon, greedy): `--grid`,
 /// enlarged when it has fewer cells than poses.
 fn grid_side(args: &GenerateArgs) -> usize {

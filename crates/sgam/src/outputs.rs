@@ -9,7 +9,9 @@ use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use sgam_core::Camera;
 use sgam_pipeline::run::RunGenerator;
-use sgam_pipeline::{frame_file_names, Generated, Keyframes, RunConfig, RunObserver, Seed, StepTimings, TrajectorySpec};
+use sgam_pipeline::{
+    frame_file_names, Generated, Keyframes, RunConfig, RunObserver, Seed, StepTimings, TrajectorySpec,
+};
 
 use crate::generate::DEPTH_PNG_MAX_M;
 use crate::live::LiveView;

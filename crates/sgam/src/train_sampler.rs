@@ -9,9 +9,9 @@ use sgam_model::generative::{CodeTrainConfig, CodeTrainer};
 use sgam_model::params::from_safetensors_bytes;
 
 use crate::eval_world::FEATURE_MODEL;
-use sgam_pipeline::HELD_OUT_SEED_BASE;
 use crate::progress;
 use crate::train::SamplerArgs;
+use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 fn validate(a: &SamplerArgs) -> Result<()> {
     if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
