@@ -305,7 +305,7 @@ impl DecoderTuner {
         steps: Option<u64>,
     ) -> Result<Self, ModelError> {
         let dir = Self::checkpoint_dir(run_dir)
-            .ok_or_else(|| ModelError::checkpoint(&run_dir, "no checkpoint (ckpt/state.json)"))?;
+            .ok_or_else(|| ModelError::checkpoint(run_dir, "no checkpoint (ckpt/state.json)"))?;
         crate::checkpoint::verify_folder(&dir)?;
         let path = dir.join("state.json");
         let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;

@@ -683,7 +683,7 @@ impl CodeTrainer {
     /// the stored values.
     pub fn resume(run_dir: &Path, steps: Option<u64>, lr_decay_from: Option<u64>) -> Result<Self, ModelError> {
         let dir = Self::checkpoint_dir(run_dir)
-            .ok_or_else(|| ModelError::checkpoint(&run_dir, "no checkpoint (ckpt/state.json)"))?;
+            .ok_or_else(|| ModelError::checkpoint(run_dir, "no checkpoint (ckpt/state.json)"))?;
         let path = dir.join("state.json");
         let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
         let state: CodeState = serde_json::from_slice(&bytes)

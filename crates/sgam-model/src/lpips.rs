@@ -108,7 +108,7 @@ impl Lpips {
     /// [`Lpips::load`] onto `device`. For use as a loss inside a training step, load it onto the
     /// autodiff device the images live on (`device.autodiff()`); its weights stay frozen there.
     pub fn load_on(path: &Path, device: &Device) -> Result<Self, ModelError> {
-        let bytes = std::fs::read(path).map_err(|e| ModelError::io(&path, e))?;
+        let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
         let with_path = |e: ModelError| ModelError::Weights(format!("{}: {}", path.display(), inner_message(e)));
         let (tensors, _) = from_safetensors_bytes(&bytes).map_err(with_path)?;
         Self::from_tensors(&tensors, device).map_err(with_path)

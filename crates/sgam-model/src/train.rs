@@ -469,7 +469,7 @@ fn freeze_for_stage(model: VqModel, stage: Stage) -> VqModel {
 }
 
 fn read_weights(path: &Path) -> Result<std::collections::BTreeMap<String, crate::params::NamedTensor>, ModelError> {
-    let bytes = std::fs::read(path).map_err(|e| ModelError::io(&path, e))?;
+    let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
     Ok(from_safetensors_bytes(&bytes).map_err(|e| ModelError::Weights(format!("{}: {e}", path.display())))?.0)
 }
 
@@ -508,7 +508,7 @@ pub fn read_checkpoint(run_dir: &Path) -> Result<Option<(PathBuf, CheckpointStat
     let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
     let state: CheckpointState = serde_json::from_slice(&bytes)
         .map_err(|e| ModelError::checkpoint(&path, format!("not a training state: {e}")))?;
-    let bad = |m: String| ModelError::checkpoint(&path, format!("{m}"));
+    let bad = |m: String| ModelError::checkpoint(&path, m);
     if state.version != STATE_VERSION {
         return Err(bad(format!("state version {} (this build reads {STATE_VERSION})", state.version)));
     }
@@ -581,7 +581,7 @@ impl Trainer {
         if let Some(what) = self.non_finite_weight() {
             return Err(TrainError::Diverged { step: self.step, what });
         }
-        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::io(&run_dir, e))?;
+        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::io(run_dir, e))?;
         let meta = crate::refiner::weight_metadata(&self.model_config)?;
         let state = CheckpointState {
             version: STATE_VERSION,
@@ -621,7 +621,7 @@ impl Trainer {
     /// overrides the stored total when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
         let (dir, state) = read_checkpoint(run_dir)?
-            .ok_or_else(|| ModelError::checkpoint(&run_dir, format!("no checkpoint ({CHECKPOINT_DIR}/)")))?;
+            .ok_or_else(|| ModelError::checkpoint(run_dir, format!("no checkpoint ({CHECKPOINT_DIR}/)")))?;
         let mut train_config = state.train_config.clone();
         if let Some(s) = steps {
             train_config.steps = s;

@@ -115,7 +115,7 @@ impl RunConfig {
         if !(1..=MAX_STEPS).contains(&self.outputs.snapshot_every) || self.outputs.mesh_every > MAX_STEPS {
             config_error!("snapshot / mesh interval out of range");
         }
-        if !(1..=64).contains(&self.k_sources) || !(self.source_radius_m > 0.0 && self.source_radius_m <= 1000.0) {
+        if !(1..=64).contains(&self.k_sources) || !(f32::MIN_POSITIVE..=1000.0).contains(&self.source_radius_m) {
             config_error!(
                 "sources: {} within {} m (accepted 1..=64 within (0, 1000] m)",
                 self.k_sources,

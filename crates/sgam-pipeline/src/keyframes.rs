@@ -66,6 +66,11 @@ impl Keyframes {
         self.cameras.len()
     }
 
+    /// Whether there is no keyframe yet (before the seed).
+    pub fn is_empty(&self) -> bool {
+        self.cameras.is_empty()
+    }
+
     /// Cameras of all keyframes, in step order.
     pub fn cameras(&self) -> &[Camera] {
         &self.cameras

@@ -94,7 +94,7 @@ impl RunObserver for CliObserver<'_> {
         if outputs.depth_png {
             write_depth_png(self.dir, i, &gen.keyframes.frame(i)?.depth_m).map_err(output_error)?;
         }
-        if outputs.mesh_every > 0 && i % outputs.mesh_every == 0 {
+        if outputs.mesh_every > 0 && i.is_multiple_of(outputs.mesh_every) {
             sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh(1.0))?;
         }
         Ok(())
