@@ -69,8 +69,6 @@ pub struct TsdfMap {
     /// hashes.
     pub(crate) upper: Vec<[u32; 8]>,
     pub(crate) lower: Vec<[u32; 8]>,
-    /// Weight threshold the cached block meshes were built with.
-    pub(crate) mesh_weight_threshold: Option<f32>,
 }
 
 impl TsdfMap {
@@ -90,7 +88,6 @@ impl TsdfMap {
             super_index: FxHashMap::default(),
             upper: Vec::new(),
             lower: Vec::new(),
-            mesh_weight_threshold: None,
         }
     }
 
@@ -571,6 +568,7 @@ mod tests {
                 depth_min_m: 0.1,
                 depth_max_m: depth_max,
                 weight_cap: None,
+                weight_threshold: 1.0,
             };
             let (keys, used) = touched_blocks(&frame.depth_m.data, w as usize, h as usize, &cam, &cfg);
             let got: FxHashSet<IVec3> = keys.iter().copied().collect();

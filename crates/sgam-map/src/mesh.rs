@@ -165,15 +165,11 @@ impl TsdfMap {
     /// Re-meshes (marching cubes) the blocks whose cells may have changed since the last call:
     /// every dirty block and its seven lower neighbours (`-x`, `-y`, `-z` and diagonals), whose
     /// border cells read the dirty block's voxels. A cell is meshed when all eight corner voxels
-    /// have `weight >= weight_threshold` (and `> 0`). Changing the threshold re-meshes the whole
-    /// map once. Runs in parallel over blocks; returns the number of blocks re-meshed.
-    pub fn update_mesh(&mut self, weight_threshold: f32) -> usize {
-        if self.mesh_weight_threshold != Some(weight_threshold) {
-            self.mesh_weight_threshold = Some(weight_threshold);
-            for id in 0..self.blocks.len() as u32 {
-                self.mark_dirty(id);
-            }
-        }
+    /// have `weight >= weight_threshold` (and `> 0`; the threshold is the map's
+    /// [`TsdfConfig::weight_threshold`](crate::TsdfConfig::weight_threshold)). Runs in parallel
+    /// over blocks; returns the number of blocks re-meshed.
+    pub fn update_mesh(&mut self) -> usize {
+        let weight_threshold = self.config.weight_threshold;
         if self.dirty.is_empty() {
             return 0;
         }
@@ -205,12 +201,23 @@ impl TsdfMap {
         todo.len()
     }
 
+    /// Sets the marching-cubes weight threshold; when it changes, every block is re-meshed on
+    /// the next [`TsdfMap::update_mesh`].
+    pub fn set_weight_threshold(&mut self, weight_threshold: f32) {
+        if self.config.weight_threshold != weight_threshold {
+            self.config.weight_threshold = weight_threshold;
+            for id in 0..self.blocks.len() as u32 {
+                self.mark_dirty(id);
+            }
+        }
+    }
+
     /// The welded world mesh: the union of all block meshes (after [`TsdfMap::update_mesh`])
     /// with vertices on shared edges merged, so no vertex is duplicated on block borders and
     /// the mesh has no cracks. Vertex order is deterministic (blocks in sorted key order).
     /// Triangles wind counter-clockwise seen from free space; colours are sRGB `[0, 1]`.
-    pub fn extract_mesh(&mut self, weight_threshold: f32) -> TriMesh {
-        self.update_mesh(weight_threshold);
+    pub fn extract_mesh(&mut self) -> TriMesh {
+        self.update_mesh();
         let ids: Vec<u32> = (0..self.blocks.len() as u32).collect();
         self.fill_colours(&ids);
         self.weld(ids, |_| true)
@@ -233,8 +240,8 @@ impl TsdfMap {
 
     /// Like [`TsdfMap::extract_mesh`] but keeps only triangles with at least one vertex inside
     /// the world box `[min, max]` (metres); only blocks near the box are visited.
-    pub fn extract_mesh_in_box(&mut self, min: Vec3, max: Vec3, weight_threshold: f32) -> TriMesh {
-        self.update_mesh(weight_threshold);
+    pub fn extract_mesh_in_box(&mut self, min: Vec3, max: Vec3) -> TriMesh {
+        self.update_mesh();
         let margin = Vec3::splat(self.config.voxel_size_m);
         let ids = self.blocks_where(min - margin, max + margin, |_, _| true);
         self.fill_colours(&ids);
@@ -509,10 +516,12 @@ mod tests {
                         block.set_voxel(i, v);
                     }
                     map.refresh_sign_flags(id);
+                    // written directly, not by integrate: queue the block for meshing
+                    map.mark_dirty(id);
                 }
             }
         }
-        let mesh = map.extract_mesh(1.0);
+        let mesh = map.extract_mesh();
         // Dense reference: every cell whose 8 corners are observed with weight >= 1.
         let cases = &table().cases;
         let (mut triangles, mut edges) = (0usize, FxHashSet::default());

@@ -97,6 +97,7 @@ impl TsdfMap {
                 let cap = cur.f32()?;
                 (has != 0).then_some(cap)
             },
+            weight_threshold: 1.0,
         };
         let count = cur.u64()?;
         let expected = (count as u128) * BLOCK_BYTES as u128 + HEADER_BYTES as u128 + 4;

@@ -156,8 +156,8 @@ impl TsdfMap {
         self.blocks_where(lo, hi, |a, b| frustum.intersects_aabb(a, b))
     }
 
-    /// Z-buffered rasterization of the map's block meshes at `camera` (re-meshes dirty blocks
-    /// first with the last weight threshold used, 1.0 if none).
+    /// Z-buffered rasterization of the map's block meshes at `camera`, after re-meshing the
+    /// dirty blocks (with the map's weight threshold).
     ///
     /// Only blocks whose AABB intersects the frustum (`depth_min_m..depth_max_m`) are touched.
     /// Depth is perspective-correct (`1/z` interpolated in screen space); colour likewise.
@@ -171,8 +171,7 @@ impl TsdfMap {
     /// z-buffer; the merge keeps the nearest hit and, on exact ties, the earlier chunk, so the
     /// result is deterministic whatever the number of threads.
     pub fn remesh_and_rasterize(&mut self, camera: &Camera) -> Rendered {
-        let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
-        self.update_mesh(threshold);
+        self.update_mesh();
         self.rasterize(camera)
     }
 
@@ -219,8 +218,7 @@ impl TsdfMap {
     /// depth is bit-identical to `remesh_and_rasterize(camera).depth_m`, without the colour and
     /// facing work.
     pub fn remesh_and_rasterize_depth(&mut self, camera: &Camera) -> Image<f32> {
-        let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
-        self.update_mesh(threshold);
+        self.update_mesh();
         self.rasterize_depth(camera)
     }
 

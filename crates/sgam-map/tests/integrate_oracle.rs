@@ -96,8 +96,14 @@ fn reference_update(r: &mut Ref, centre: Vec3, camera: &Camera, f: &RgbdFrame, c
 
 #[test]
 fn the_simd_update_equals_a_scalar_reference_integrator() {
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.05, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 3.0, weight_cap: Some(3.0) };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.05,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 3.0,
+        weight_cap: Some(3.0),
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     let cameras: Vec<Camera> =
         [(0.0, 0.0, 0.0), (0.13, 0.05, 0.02), (-0.21, 0.11, -0.07), (0.3, -0.17, 0.1), (0.04, 0.2, 0.0)]

@@ -15,8 +15,14 @@ fn scene() -> Vec<Shape> {
 }
 
 fn fused(voxel: f32) -> TsdfMap {
-    let cfg =
-        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: voxel,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 8.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     let s = scene();
     for i in 0..10 {
@@ -97,7 +103,7 @@ fn rasterized_depth_matches_analytic_depth() {
     assert_eq!(three.install(|| map.rasterize(&cam)), r);
     // Vertex colours are computed on the fly by the rasterizer until an extraction caches
     // them: both give the same picture.
-    assert!(!map.extract_mesh(1.0).colours.is_empty());
+    assert!(!map.extract_mesh().colours.is_empty());
     assert_eq!(map.rasterize(&cam), r);
 }
 
@@ -125,8 +131,14 @@ fn back_faces_occlude_and_are_flagged() {
     // A camera inside the sphere of the mesh test sees only back faces.
     let radius = 0.5;
     let scene = [Shape::Sphere { centre: Vec3::ZERO, radius, colour: [0.5; 3] }];
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.03, trunc_voxels: 4.0, depth_min_m: 0.05, depth_max_m: 5.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.03,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.05,
+        depth_max_m: 5.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     for dir in fibonacci_directions(16) {
         let cam = camera(dir * 2.0, Vec3::ZERO, 96, 96, 96.0);
@@ -149,11 +161,11 @@ fn cameras_in_the_middle_of_the_map_render_without_panicking() {
     let voxel = 0.04;
     let map = {
         let mut m = fused(voxel);
-        m.update_mesh(1.0);
+        m.update_mesh();
         m
     };
     let (near, far) = (map.config().depth_min_m, map.config().depth_max_m);
-    let mesh = map.clone().extract_mesh(1.0);
+    let mesh = map.clone().extract_mesh();
     let vertex = mesh.positions[mesh.positions.len() / 2];
     let grazing = (Vec3::new(0.0, 0.0, 1e-4), Vec3::new(1.0, 0.0, 1e-4));
     let inside = (Vec3::new(0.3, -0.2, 0.25), Vec3::new(0.3, 0.8, 0.25));

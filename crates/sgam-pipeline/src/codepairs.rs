@@ -319,7 +319,7 @@ mod tests {
             let mut f = f.clone();
             crate::quantise_colour(&mut f.colour);
             map.integrate(&f, c);
-            map.update_mesh(config.weight_threshold);
+            map.update_mesh();
         }
         let target = &recorded[3].guidance;
         // sources: the nearest 5 within 1 m of the target, nearest first (the keyframe rule)

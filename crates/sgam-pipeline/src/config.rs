@@ -31,6 +31,8 @@ pub struct MapSettings {
     pub depth_max_m: f32,
     /// Cap on the per-voxel weight.
     pub weight_cap: Option<f32>,
+    /// Marching-cubes weight threshold (what meshing and the guidance render use).
+    pub weight_threshold: f32,
 }
 
 impl MapSettings {
@@ -42,6 +44,7 @@ impl MapSettings {
             depth_min_m: self.depth_min_m,
             depth_max_m: self.depth_max_m,
             weight_cap: self.weight_cap,
+            weight_threshold: self.weight_threshold,
         }
     }
 }

@@ -20,8 +20,6 @@ pub struct GeneratorConfig {
     pub k_sources: usize,
     /// Sources must lie within this distance of the target camera, metres (authors: 1.0 / 0.3).
     pub source_radius_m: f32,
-    /// Marching-cubes weight threshold.
-    pub weight_threshold: f32,
     /// Ablation (InfiniteNature-style): no global map; the guidance comes from the previous
     /// frame only.
     pub no_map: bool,
@@ -41,11 +39,11 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
             depth_min_m: 0.05,
             depth_max_m: 20.0,
             weight_cap: None,
+            weight_threshold: 1.0,
         },
         warp: WarpConfig { selection: SourceSelection::NearestCamera, ..WarpConfig::default() },
         k_sources: 5,
         source_radius_m: 1.0,
-        weight_threshold: 1.0,
         no_map: false,
         seed,
     }
@@ -144,7 +142,7 @@ impl<R: Refiner> WorldGenerator<R> {
     pub fn seed(&mut self, camera: &Camera, mut frame: RgbdFrame) -> Result<()> {
         quantise_colour(&mut frame.colour);
         self.map.integrate(&frame, camera);
-        self.map.update_mesh(self.config.weight_threshold);
+        self.map.update_mesh();
         self.keyframes.push(*camera, frame)?;
         Ok(())
     }
@@ -172,7 +170,7 @@ impl<R: Refiner> WorldGenerator<R> {
         self.map.integrate(&frame, camera);
         timings.integrate_ms = t.lap();
         // re-mesh only the blocks the frame changed
-        self.map.update_mesh(self.config.weight_threshold);
+        self.map.update_mesh();
         timings.mesh_ms = t.lap();
         // keep it as a keyframe (written to the run folder)
         self.keyframes.push(*camera, frame)?;

@@ -134,7 +134,7 @@ impl SynthPairs {
         for (cam, f) in &views {
             map.integrate(f, cam);
         }
-        map.update_mesh(config.weight_threshold);
+        map.update_mesh();
         let sources: Vec<SourceView<'_>> =
             views.iter().take(self.k_sources).map(|(c, f)| SourceView { camera: c, frame: f }).collect();
         let (guidance, _) = crate::render_guidance(&mut map, &crop_cam, &sources, &config.warp, 0);

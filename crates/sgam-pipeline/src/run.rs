@@ -81,10 +81,12 @@ pub fn generate(
     let mut keyframes = Keyframes::new(dir, gconfig.source_radius_m, 96);
     let resumed = resume.is_some();
     let (map, mut timings) = match resume {
-        Some(r) => {
+        Some(mut r) => {
             for c in &r.state.cameras {
                 keyframes.push_camera(*c);
             }
+            // the map file does not store the threshold: the run's configuration holds it
+            r.map.set_weight_threshold(gconfig.tsdf.weight_threshold);
             (r.map, r.state.timings)
         }
         None => (TsdfMap::new(gconfig.tsdf), Vec::new()),

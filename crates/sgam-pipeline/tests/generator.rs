@@ -26,6 +26,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
             depth_min_m: 0.05,
             depth_max_m: 20.0,
             weight_cap: None,
+            weight_threshold: 1.0,
         },
         k_sources: 5,
         source_radius_m: 1.0,
@@ -70,7 +71,7 @@ fn oracle_run_reproduces_ground_truth_and_its_mesh_lies_on_the_scene() {
         assert!(worst <= 0.5 / 255.0 + 1e-6, "frame {i}: a channel differs by {worst}");
     }
     // the fused mesh lies on the scene: near the ground or within an object's bounds
-    let mesh = run.generator.map.extract_mesh(1.0);
+    let mesh = run.generator.map.extract_mesh();
     assert!(mesh.positions.len() > 1000, "mesh too small: {}", mesh.positions.len());
     let boxes: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| o.aabb()).collect();
     let margin = 0.1;

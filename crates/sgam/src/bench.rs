@@ -180,7 +180,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     for (c, f) in &seq[..warm] {
         map.integrate(f, c);
     }
-    map.update_mesh(1.0);
+    map.update_mesh();
     let mut ms = Vec::with_capacity(args.iterations);
     // map-step: per-stage times (render, warp, integrate, mesh)
     let mut split: [Vec<f64>; 4] = Default::default();
@@ -205,7 +205,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
             Subject::Mesh => {
                 let s = map.integrate(frame, cam);
                 let t1 = Instant::now();
-                let m = map.update_mesh(1.0);
+                let m = map.update_mesh();
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
                 count(s, m);
                 continue;
@@ -222,7 +222,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
                 map.integrate(frame, cam);
-                map.update_mesh(1.0);
+                map.update_mesh();
                 continue;
             }
             Subject::MapStep => {
@@ -232,7 +232,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
                 let t2 = Instant::now();
                 let s = map.integrate(frame, cam);
                 let t3 = Instant::now();
-                let m = map.update_mesh(1.0);
+                let m = map.update_mesh();
                 let t4 = Instant::now();
                 for (stage, (a, b)) in split.iter_mut().zip([(t, t1), (t1, t2), (t2, t3), (t3, t4)]) {
                     stage.push((b - a).as_secs_f64() * 1e3);
@@ -247,7 +247,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         if matches!(args.subject, Subject::Render | Subject::RayCast | Subject::Synth) {
             map.integrate(frame, cam);
-            map.update_mesh(1.0);
+            map.update_mesh();
         }
     }
     let subject = format!("{:?}", args.subject).to_lowercase();

@@ -138,6 +138,7 @@ pub fn run(args: FuseArgs) -> Result<()> {
         depth_min_m: args.depth_min,
         depth_max_m: args.depth_max,
         weight_cap: None,
+        weight_threshold: args.weight_threshold,
     };
     config.validate().context("invalid map parameters")?;
     let seq = sgam_io::Sequence::open(&args.sequence)?;
@@ -172,14 +173,14 @@ pub fn run(args: FuseArgs) -> Result<()> {
         integrate_ms.push(t.elapsed().as_secs_f64() * 1e3);
         if args.mesh_every > 0 && (n + 1) % args.mesh_every == 0 {
             let t = Instant::now();
-            map.update_mesh(args.weight_threshold);
+            map.update_mesh();
             mesh_ms += t.elapsed().as_secs_f64() * 1e3;
         }
         pb.inc(1);
     }
     pb.finish_and_clear();
     let t = Instant::now();
-    let mesh = map.extract_mesh(args.weight_threshold);
+    let mesh = map.extract_mesh();
     mesh_ms += t.elapsed().as_secs_f64() * 1e3;
     sgam_io::write_mesh(&args.out, &mesh)?;
     if let Some(p) = &args.save_map {

@@ -393,6 +393,7 @@ pub fn resolve(args: &GenerateArgs) -> Result<RunConfig> {
             depth_min_m: 0.05,
             depth_max_m: args.depth_max,
             weight_cap: args.weight_cap,
+            weight_threshold: 1.0,
         },
         k_sources: args.k_sources.unwrap_or(preset.k_sources),
         source_radius_m: args.source_radius.unwrap_or(preset.source_radius_m),

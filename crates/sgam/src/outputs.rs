@@ -95,7 +95,7 @@ impl RunObserver for CliObserver<'_> {
             write_depth_png(self.dir, i, &gen.keyframes.frame(i)?.depth_m).map_err(output_error)?;
         }
         if outputs.mesh_every > 0 && i.is_multiple_of(outputs.mesh_every) {
-            sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh(1.0))?;
+            sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh())?;
         }
         Ok(())
     }
@@ -133,7 +133,7 @@ fn write_depth_png(dir: &Path, index: usize, depth_m: &sgam_core::Image<f32>) ->
 pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Result<()> {
     let (gen, timings, wall_s) = (&mut run.generator, &run.timings, run.wall_s);
     let outputs = &config.outputs;
-    let mesh = gen.map.extract_mesh(1.0);
+    let mesh = gen.map.extract_mesh();
     sgam_io::write_mesh(&dir.join("mesh.ply"), &mesh)?;
     sgam_io::write_mesh(&dir.join("mesh.glb"), &mesh)?;
     sgam_pipeline::save_map(&dir.join("map.bin"), &gen.map)?;
