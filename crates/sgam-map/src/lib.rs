@@ -27,6 +27,7 @@ mod allocate;
 mod block;
 mod config;
 mod error;
+mod layer;
 mod map;
 mod mc_table;
 mod mesh;

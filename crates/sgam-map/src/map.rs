@@ -2,28 +2,14 @@
 
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
-use rustc_hash::FxHashMap;
 use sgam_core::{Camera, RgbdFrame, Rigid3};
 use wide::{bytemuck::cast, f32x8, i32x8};
 
 use crate::allocate::{touched_blocks, Usable};
 use crate::block::{Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS, ROWS};
+use crate::layer::{disjoint_mut, BlockLayer};
 use crate::mesh::BlockMesh;
 use crate::TsdfConfig;
-
-/// Blocks per super-block edge: the coarse grid used to find the blocks inside a frustum or a
-/// box without visiting the whole map.
-pub(crate) const SUPER_SIZE: i32 = 8;
-
-/// "No block" in the neighbour tables.
-pub(crate) const NONE: u32 = u32::MAX;
-
-/// Offset of corner `o` (`0..8`) of the unit cube: `(o & 1, o >> 1 & 1, o >> 2)`.
-#[inline]
-pub(crate) fn corner_offset(o: usize) -> IVec3 {
-    let o = o as i32;
-    IVec3::new(o & 1, (o >> 1) & 1, o >> 2)
-}
 
 /// What one [`TsdfMap::integrate`] call did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -48,10 +34,9 @@ pub struct IntegrateStats {
 #[derive(Debug, Clone)]
 pub struct TsdfMap {
     pub(crate) config: TsdfConfig,
-    /// Block key -> block id (index into `keys`, `blocks`, `meshes`).
-    pub(crate) index: FxHashMap<IVec3, u32>,
-    pub(crate) keys: Vec<IVec3>,
-    pub(crate) blocks: Vec<Block>,
+    /// The blocks, their keys and neighbours (ids index `meshes` and the per-block state
+    /// below too).
+    pub(crate) layer: BlockLayer,
     pub(crate) meshes: Vec<BlockMesh>,
     /// Blocks whose voxels changed since their neighbourhood was last meshed.
     pub(crate) dirty: Vec<u32>,
@@ -61,14 +46,6 @@ pub struct TsdfMap {
     /// Per block, per voxel row (`y + 8 z`): the same summary over the row, so that an
     /// integration which leaves a row alone need not read it to refresh `sign_flags`.
     pub(crate) row_flags: Vec<[u8; ROWS]>,
-    /// Super-block key -> ids of its blocks (ascending).
-    pub(crate) super_index: FxHashMap<IVec3, Vec<u32>>,
-    /// Per block, the ids of the blocks at `key + offset(o)` / `key - offset(o)` for
-    /// `offset(o) = (o & 1, o >> 1 & 1, o >> 2)`, `o` in `1..8` (`NONE` where unallocated; entry
-    /// 0 is the block itself). Kept up to date by [`TsdfMap::allocate`], so meshing never
-    /// hashes.
-    pub(crate) upper: Vec<[u32; 8]>,
-    pub(crate) lower: Vec<[u32; 8]>,
 }
 
 impl TsdfMap {
@@ -77,17 +54,12 @@ impl TsdfMap {
     pub fn new(config: TsdfConfig) -> Self {
         Self {
             config,
-            index: FxHashMap::default(),
-            keys: Vec::new(),
-            blocks: Vec::new(),
+            layer: BlockLayer::default(),
             meshes: Vec::new(),
             dirty: Vec::new(),
             is_dirty: Vec::new(),
             sign_flags: Vec::new(),
             row_flags: Vec::new(),
-            super_index: FxHashMap::default(),
-            upper: Vec::new(),
-            lower: Vec::new(),
         }
     }
 
@@ -98,7 +70,7 @@ impl TsdfMap {
 
     /// Number of allocated blocks.
     pub fn block_count(&self) -> usize {
-        self.blocks.len()
+        self.layer.len()
     }
 
     /// Approximate heap memory in bytes (voxels, hash indices and cached meshes).
@@ -113,19 +85,19 @@ impl TsdfMap {
             + std::mem::size_of::<[u8; ROWS]>()
             + 1;
         let meshes: usize = self.meshes.iter().map(BlockMesh::heap_bytes).sum();
-        self.blocks.capacity().max(self.blocks.len()) * per_block + meshes + self.super_index.len() * 64
+        self.layer.capacity() * per_block + meshes + self.layer.super_block_count() * 64
     }
 
     /// Sorted keys of all allocated blocks.
     pub fn block_keys(&self) -> Vec<IVec3> {
-        let mut k = self.keys.clone();
+        let mut k = self.layer.keys().to_vec();
         k.sort_unstable_by_key(|k| (k.x, k.y, k.z));
         k
     }
 
     /// The block with key `key`, if allocated.
     pub fn block(&self, key: IVec3) -> Option<&Block> {
-        self.index.get(&key).map(|&i| &self.blocks[i as usize])
+        self.layer.block_at(key)
     }
 
     /// The voxel at global voxel index `g`, if its block is allocated.
@@ -138,40 +110,19 @@ impl TsdfMap {
 
     /// Allocates the block `key` if needed and returns its id.
     pub(crate) fn allocate(&mut self, key: IVec3) -> (u32, bool) {
-        if let Some(&i) = self.index.get(&key) {
-            return (i, false);
+        let (id, new) = self.layer.allocate(key);
+        if new {
+            self.meshes.push(BlockMesh::default());
+            self.is_dirty.push(false);
+            self.sign_flags.push(0);
+            self.row_flags.push([0; ROWS]);
         }
-        let id = self.blocks.len() as u32;
-        self.index.insert(key, id);
-        self.keys.push(key);
-        self.blocks.push(Block::default());
-        self.meshes.push(BlockMesh::default());
-        self.is_dirty.push(false);
-        self.sign_flags.push(0);
-        self.row_flags.push([0; ROWS]);
-        let sk = IVec3::new(key.x.div_euclid(SUPER_SIZE), key.y.div_euclid(SUPER_SIZE), key.z.div_euclid(SUPER_SIZE));
-        self.super_index.entry(sk).or_default().push(id);
-        let (mut upper, mut lower) = ([NONE; 8], [NONE; 8]);
-        (upper[0], lower[0]) = (id, id);
-        for o in 1..8 {
-            let off = corner_offset(o);
-            if let Some(&n) = self.index.get(&key.wrapping_add(off)) {
-                upper[o] = n;
-                self.lower[n as usize][o] = id;
-            }
-            if let Some(&n) = self.index.get(&key.wrapping_sub(off)) {
-                lower[o] = n;
-                self.upper[n as usize][o] = id;
-            }
-        }
-        self.upper.push(upper);
-        self.lower.push(lower);
-        (id, true)
+        (id, new)
     }
 
     /// Recomputes the sign summary of block `id` from its voxels.
     pub(crate) fn refresh_sign_flags(&mut self, id: u32) {
-        let rows = row_flags_of(&self.blocks[id as usize]);
+        let rows = row_flags_of(self.layer.block(id));
         self.sign_flags[id as usize] = block_flags(&rows);
         self.row_flags[id as usize] = rows;
     }
@@ -215,8 +166,8 @@ impl TsdfMap {
         stats.blocks_touched = keys.len();
         // Existing blocks are looked up in parallel; new keys are allocated in sorted order (ids
         // do not depend on the hash set's iteration order).
-        let index = &self.index;
-        let found: Vec<Option<u32>> = keys.par_iter().map(|k| index.get(k).copied()).collect();
+        let layer = &self.layer;
+        let found: Vec<Option<u32>> = keys.par_iter().map(|k| layer.id_of(*k)).collect();
         let mut new_keys: Vec<IVec3> = keys.iter().zip(&found).filter(|(_, f)| f.is_none()).map(|(k, _)| *k).collect();
         new_keys.sort_unstable_by_key(|k| (k.x, k.y, k.z));
         let mut ids: Vec<u32> = found.into_iter().flatten().collect();
@@ -228,9 +179,8 @@ impl TsdfMap {
         let camera_from_world = camera.world_from_camera.inverse();
         let ctx = UpdateContext::new(frame, camera, &camera_from_world, &cfg);
         let updated: Vec<(u32, usize, u8)> = {
-            let blocks = disjoint_mut(&mut self.blocks, &ids);
+            let (blocks, keys_of) = self.layer.blocks_mut(&ids);
             let rows = disjoint_mut(&mut self.row_flags, &ids);
-            let keys_of = &self.keys;
             // Visit the blocks in image order (Morton order of where their centres project), so
             // that the frame's depth and colour pixels read by consecutive blocks are cache-warm
             // and each thread's share covers one part of the image.
@@ -258,23 +208,6 @@ impl TsdfMap {
         }
         stats
     }
-}
-
-/// Mutable references to `blocks[ids[i]]` for sorted, unique `ids`, in O(ids) time.
-fn disjoint_mut<'a, T>(blocks: &'a mut [T], ids: &[u32]) -> Vec<&'a mut T> {
-    let mut out = Vec::with_capacity(ids.len());
-    let mut rest = blocks;
-    let mut offset = 0usize;
-    for &id in ids {
-        let at = id as usize - offset;
-        let (_, tail) = std::mem::take(&mut rest).split_at_mut(at);
-        if let Some((first, tail)) = tail.split_first_mut() {
-            out.push(first);
-            rest = tail;
-        }
-        offset = id as usize + 1;
-    }
-    out
 }
 
 /// Per-frame constants of the voxel update.
@@ -477,6 +410,7 @@ fn row_flags(tsdf: f32x8, weight: f32x8) -> u8 {
 mod tests {
     use super::*;
     use crate::allocate::{walk_cells, TileStats};
+    use crate::layer::{corner_offset, NONE};
     use rand::{Rng, SeedableRng};
     use rustc_hash::FxHashSet;
 
@@ -603,11 +537,12 @@ mod tests {
             let k = IVec3::new(rng.random_range(-4..4), rng.random_range(-4..4), rng.random_range(-4..4));
             map.allocate(k);
         }
-        for (id, &k) in map.keys.iter().enumerate() {
+        let layer = &map.layer;
+        for (id, &k) in layer.keys().iter().enumerate() {
             for o in 0..8 {
-                let at = |key: IVec3| map.index.get(&key).copied().unwrap_or(NONE);
-                assert_eq!(map.upper[id][o], at(k + corner_offset(o)), "{k} + {o}");
-                assert_eq!(map.lower[id][o], at(k - corner_offset(o)), "{k} - {o}");
+                let at = |key: IVec3| layer.id_of(key).unwrap_or(NONE);
+                assert_eq!(layer.upper(id as u32)[o], at(k + corner_offset(o)), "{k} + {o}");
+                assert_eq!(layer.lower(id as u32)[o], at(k - corner_offset(o)), "{k} - {o}");
             }
         }
     }

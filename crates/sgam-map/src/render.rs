@@ -405,7 +405,7 @@ impl TsdfMap {
             let bkey = floor_ivec3(p / bs);
             if bkey != last_block {
                 last_block = bkey;
-                if self.index.contains_key(&bkey) {
+                if self.layer.contains(bkey) {
                     entered += 1;
                 } else {
                     // Skip the unallocated block: every trilinear stencil of a point in it reads it.
@@ -484,7 +484,7 @@ impl<'a> BlockCache<'a> {
         let k = block_of_voxel(g);
         if self.key != Some(k) {
             self.key = Some(k);
-            self.block = map.index.get(&k).map(|&i| &map.blocks[i as usize]);
+            self.block = map.layer.block_at(k);
         }
         let l = voxel_in_block(g);
         self.block.map(|b| b.voxel(local_index(l.x, l.y, l.z)))
