@@ -383,7 +383,9 @@ mod tests {
                     // pixels whose normal can be taken (neighbours 2 px away inside the plane's
                     // valid region) are snapped
                     let ok = |a: i64, b: i64| {
-                        (0..w as i64).contains(&a) && (0..h as i64).contains(&b) && *truth.depth_m.at(a as u32, b as u32) > 0.0
+                        (0..w as i64).contains(&a)
+                            && (0..h as i64).contains(&b)
+                            && *truth.depth_m.at(a as u32, b as u32) > 0.0
                     };
                     let (a, b) = (u as i64, v as i64);
                     if ok(a, b - 2) && (a < 2 || a + 2 >= w as i64 || (ok(a - 2, b) && ok(a + 2, b))) {

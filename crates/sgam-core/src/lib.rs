@@ -14,6 +14,7 @@
 //!   complete RGB-D out.
 
 mod camera;
+mod colour;
 mod error;
 pub mod ground;
 mod image;
@@ -23,6 +24,7 @@ mod rigid;
 pub mod trajectory;
 
 pub use camera::{Camera, Intrinsics};
+pub use colour::{linear_to_srgb, srgb_to_linear};
 pub use error::CoreError;
 pub use image::{is_valid_depth, Image, RgbdFrame};
 pub use mesh::TriMesh;

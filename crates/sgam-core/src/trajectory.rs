@@ -48,12 +48,14 @@ pub fn boustrophedon_cells(n_i: usize, n_j: usize) -> Vec<(usize, usize)> {
 /// Places grid cells as poses: cell `(i, j)` is the seed translated by `step_m * (i, j, 0)` in
 /// world x (i) and y (j); orientation is the seed's.
 pub fn grid_poses(seed: &Rigid3, cells: &[(usize, usize)], step_m: f32) -> Vec<Rigid3> {
-    cells
-        .iter()
-        .map(|&(i, j)| {
-            Rigid3::new(seed.rotation, seed.translation + Vec3::new(i as f32 * step_m, j as f32 * step_m, 0.0))
-        })
-        .collect()
+    cells.iter().map(|&(i, j)| grid_pose(seed, i as i32, j as i32, step_m)).collect()
+}
+
+/// The pose of grid cell `(i, j)`: the seed moved `i * step_m` along world x and `j * step_m`
+/// along world y, same orientation. The one cell -> pose mapping of the grid trajectories and
+/// the greedy planner.
+pub fn grid_pose(seed: &Rigid3, i: i32, j: i32, step_m: f32) -> Rigid3 {
+    Rigid3::new(seed.rotation, seed.translation + Vec3::new(i as f32 * step_m, j as f32 * step_m, 0.0))
 }
 
 /// `n` poses along a straight line from the seed: the horizontal projection of the seed's optical

@@ -31,6 +31,7 @@ mod npy;
 mod poses;
 mod seeds;
 mod sequence;
+mod snapshot;
 
 pub use atomic::write_atomic;
 pub use clevr::{
@@ -46,7 +47,7 @@ pub use images::{
     depth_to_mm, image_size, read_depth_png_mm, read_depth_png_scaled, read_rgb, to_srgb8, write_depth_png_mm,
     write_rgb_png, DEPTH_PNG_INVALID_MAX, DEPTH_PNG_MAX_MM,
 };
-pub use mesh::{read_ply, srgb_to_linear, world_to_gltf, write_glb, write_obj, write_ply};
+pub use mesh::{read_ply, world_to_gltf, write_glb, write_mesh, write_obj, write_ply};
 pub use nerf::{read_nerf_transforms, write_nerf_transforms, NerfFrame, NerfTransforms};
 pub use npy::{read_npy_f32, read_npy_matrix, write_npy_f32, write_npy_f64};
 pub use poses::{
@@ -55,3 +56,6 @@ pub use poses::{
 };
 pub use seeds::{read_clevr_template, read_google_earth_seed, read_seed_rgbd, SeedImage, GOOGLE_EARTH_FOCAL_PX_AT_512};
 pub use sequence::{detect_layout, Layout, Sequence};
+/// The sRGB transfer (glTF vertex colours are linear); defined in `sgam-core`.
+pub use sgam_core::srgb_to_linear;
+pub use snapshot::{encode_snapshot, parse_snapshot, read_snapshot, write_snapshot, SNAPSHOT_MAGIC};

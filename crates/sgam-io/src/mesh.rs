@@ -3,7 +3,7 @@
 use std::io::Write;
 use std::path::Path;
 
-use sgam_core::{TriMesh, Vec3};
+use sgam_core::{srgb_to_linear, TriMesh, Vec3};
 
 use crate::images::to_srgb8;
 use crate::{write_atomic, IoError};
@@ -23,6 +23,17 @@ fn check_mesh(path: &Path, mesh: &TriMesh) -> Result<(), IoError> {
         return Err(IoError::invalid(path, "too many vertices for 32-bit indices"));
     }
     Ok(())
+}
+
+/// Writes `mesh` in the format its extension names: `.ply` (binary, vertex colours), `.obj` or
+/// `.glb` (case-insensitive); any other extension is an error naming the path.
+pub fn write_mesh(path: &Path, mesh: &TriMesh) -> Result<(), IoError> {
+    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+        Some("ply") => write_ply(path, mesh),
+        Some("obj") => write_obj(path, mesh),
+        Some("glb") => write_glb(path, mesh),
+        _ => Err(IoError::invalid(path, "unknown mesh format (use .ply, .obj or .glb)")),
+    }
 }
 
 /// Writes a binary little-endian PLY, atomically: `float x y z`, `uchar red green blue` (when
@@ -344,16 +355,6 @@ pub fn write_obj(path: &Path, mesh: &TriMesh) -> Result<(), IoError> {
 /// (-90 degrees about x), so triangle winding and handedness are preserved.
 pub fn world_to_gltf(p: Vec3) -> Vec3 {
     Vec3::new(p.x, p.z, -p.y)
-}
-
-/// sRGB-encoded `[0, 1]` to linear (glTF vertex colours are linear).
-pub fn srgb_to_linear(c: f32) -> f32 {
-    let c = c.clamp(0.0, 1.0);
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
 }
 
 const GLB_MAGIC: u32 = 0x4654_6C67; // "glTF"

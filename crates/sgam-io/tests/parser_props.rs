@@ -1,4 +1,4 @@
-//! Property tests over every file reader (issue 18): arbitrary bytes, and valid files with bytes
+//! Property tests over every file reader: arbitrary bytes, and valid files with bytes
 //! flipped, cut short or spliced, never make a reader panic; whatever a reader accepts obeys its
 //! contract (finite rigid poses, finite mesh positions with indices in range, images whose pixel
 //! count matches their size, depth finite and non-negative).

@@ -27,9 +27,8 @@ fn cpu_ms() -> f64 {
         / 1e6
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+fn median(v: Vec<f64>) -> f64 {
+    sgam_metrics::median(&v).unwrap_or(f64::NAN)
 }
 
 /// Ground plane at z = -11.695 with spheres on it; camera pitched down, OpenCV axes.
@@ -93,7 +92,7 @@ fn bench_clevr() {
     for i in 0..steps {
         let c0 = cpu_ms();
         let t0 = Instant::now();
-        let rendered = map.render_depth(&cams[i]);
+        let rendered = map.remesh_and_rasterize_depth(&cams[i]);
         let c1 = cpu_ms();
         let t1 = Instant::now();
         let sources: Vec<SourceView> =
@@ -104,7 +103,7 @@ fn bench_clevr() {
         map.integrate(&frames[i], &cams[i]);
         let c3 = cpu_ms();
         let t3 = Instant::now();
-        map.update_mesh(1.0);
+        map.update_mesh();
         let c4 = cpu_ms();
         let t4 = Instant::now();
         std::hint::black_box(&warped);
@@ -176,8 +175,14 @@ fn bench_7scenes(dir: &Path) {
         eprintln!("7scenes640: no readable sequence at {}", dir.display());
         return;
     };
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.02, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 4.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.02,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 4.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     for repeat in 0..2 {
         let mut map = TsdfMap::new(cfg);
         let (mut t_int, mut t_mesh) = (vec![], vec![]);
@@ -189,14 +194,14 @@ fn bench_7scenes(dir: &Path) {
             map.integrate(f, cam);
             let c1 = cpu_ms();
             let t1 = Instant::now();
-            map.update_mesh(1.0);
+            map.update_mesh();
             c_int += c1 - c0;
             c_mesh += cpu_ms() - c1;
             t_int.push((t1 - t0).as_secs_f64() * 1e3);
             t_mesh.push(t1.elapsed().as_secs_f64() * 1e3);
         }
         let t_extract = Instant::now();
-        let mesh = map.extract_mesh(1.0);
+        let mesh = map.extract_mesh();
         let extract_ms = t_extract.elapsed().as_secs_f64() * 1e3;
         let total = start.elapsed().as_secs_f64() * 1e3;
         let n = frames.len() as f64;

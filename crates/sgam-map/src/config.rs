@@ -18,19 +18,31 @@ pub struct TsdfConfig {
     /// `trunc_voxels * voxel_size_m`).
     pub trunc_voxels: f32,
     /// Depth readings below this planar depth (metres) are ignored when integrating; also the
-    /// near plane of [`crate::TsdfMap::render`] and [`crate::TsdfMap::ray_cast`].
+    /// near plane of [`crate::TsdfMap::remesh_and_rasterize`] and [`crate::TsdfMap::ray_cast`].
     pub depth_min_m: f32,
     /// Depth readings above this planar depth (metres) are ignored when integrating; also the far
-    /// plane of [`crate::TsdfMap::render`] and [`crate::TsdfMap::ray_cast`].
+    /// plane of [`crate::TsdfMap::remesh_and_rasterize`] and [`crate::TsdfMap::ray_cast`].
     pub depth_max_m: f32,
     /// Optional cap on the per-voxel weight (`None` = the paper's unbounded running average).
     pub weight_cap: Option<f32>,
+    /// Marching-cubes weight threshold (Open3D's `weight_threshold`): a cell is meshed when all
+    /// eight corner voxels have `weight >= weight_threshold` (and `> 0`). Meshing, extraction and
+    /// rendering all use it; change it with [`crate::TsdfMap::set_weight_threshold`]. Not stored
+    /// by [`crate::TsdfMap::write_to`] (a loaded map meshes with the default, 1).
+    pub weight_threshold: f32,
 }
 
 impl Default for TsdfConfig {
     /// CLEVR-Infinite: 0.05 m voxels, truncation 10 voxels (0.5 m), depth range 0.1..20 m.
     fn default() -> Self {
-        Self { voxel_size_m: 0.05, trunc_voxels: 10.0, depth_min_m: 0.1, depth_max_m: 20.0, weight_cap: None }
+        Self {
+            voxel_size_m: 0.05,
+            trunc_voxels: 10.0,
+            depth_min_m: 0.1,
+            depth_max_m: 20.0,
+            weight_cap: None,
+            weight_threshold: 1.0,
+        }
     }
 }
 
@@ -74,6 +86,9 @@ impl TsdfConfig {
             if !(cap.is_finite() && cap >= 1.0) {
                 return bad(format!("weight_cap = {cap} must be >= 1"));
             }
+        }
+        if !(self.weight_threshold.is_finite() && self.weight_threshold >= 0.0) {
+            return bad(format!("weight_threshold = {} must be a finite weight >= 0", self.weight_threshold));
         }
         Ok(())
     }

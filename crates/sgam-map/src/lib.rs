@@ -15,7 +15,7 @@
 //!   blocks and their lower neighbours. Vertices are identified by their global grid edge, so
 //!   block meshes weld into a crack-free world mesh ([`TsdfMap::extract_mesh`]). Triangles wind
 //!   counter-clockwise seen from free space.
-//! - **Guidance**: [`TsdfMap::render`] rasterizes the block meshes in the camera frustum
+//! - **Guidance**: [`TsdfMap::remesh_and_rasterize`] rasterizes the block meshes in the camera frustum
 //!   (planar depth, colour, coverage); [`TsdfMap::ray_cast`] marches the TSDF instead.
 //!   [`warp_colour`] fills colour from source keyframes, accepting a source only where its own
 //!   depth, sampled at the projected location, agrees with the target depth.
@@ -23,9 +23,11 @@
 //! - **Cost**: integration, re-meshing and rendering visit the blocks of one frame / frustum,
 //!   never the whole map, so a step costs the same after 10,000 steps.
 
+mod allocate;
 mod block;
 mod config;
 mod error;
+mod layer;
 mod map;
 mod mc_table;
 mod mesh;

@@ -6,7 +6,8 @@ use rustc_hash::FxHashMap;
 use sgam_core::TriMesh;
 
 use crate::block::{Block, Voxel, BLOCK_SIZE};
-use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE, NONE, SUPER_SIZE};
+use crate::layer::{NONE, SUPER_SIZE};
+use crate::map::{TsdfMap, HAS_NEGATIVE, HAS_POSITIVE};
 use crate::mc_table::{edge_axis, edge_start, table};
 use wide::f32x8;
 
@@ -70,8 +71,8 @@ struct Neighbourhood<'a> {
 
 impl<'a> Neighbourhood<'a> {
     fn new(map: &'a TsdfMap, id: u32) -> Self {
-        let ids = map.upper[id as usize];
-        Self { blocks: std::array::from_fn(|o| (ids[o] != NONE).then(|| &map.blocks[ids[o] as usize])) }
+        let ids = map.layer.upper(id);
+        Self { blocks: std::array::from_fn(|o| (ids[o] != NONE).then(|| map.layer.block(ids[o]))) }
     }
 
     /// Block and (row, lane) of grid point `l` (each coordinate in `0..=8`).
@@ -165,15 +166,11 @@ impl TsdfMap {
     /// Re-meshes (marching cubes) the blocks whose cells may have changed since the last call:
     /// every dirty block and its seven lower neighbours (`-x`, `-y`, `-z` and diagonals), whose
     /// border cells read the dirty block's voxels. A cell is meshed when all eight corner voxels
-    /// have `weight >= weight_threshold` (and `> 0`). Changing the threshold re-meshes the whole
-    /// map once. Runs in parallel over blocks; returns the number of blocks re-meshed.
-    pub fn update_mesh(&mut self, weight_threshold: f32) -> usize {
-        if self.mesh_weight_threshold != Some(weight_threshold) {
-            self.mesh_weight_threshold = Some(weight_threshold);
-            for id in 0..self.blocks.len() as u32 {
-                self.mark_dirty(id);
-            }
-        }
+    /// have `weight >= weight_threshold` (and `> 0`; the threshold is the map's
+    /// [`TsdfConfig::weight_threshold`](crate::TsdfConfig::weight_threshold)). Runs in parallel
+    /// over blocks; returns the number of blocks re-meshed.
+    pub fn update_mesh(&mut self) -> usize {
+        let weight_threshold = self.config.weight_threshold;
         if self.dirty.is_empty() {
             return 0;
         }
@@ -181,7 +178,7 @@ impl TsdfMap {
         // queued; no sort).
         let mut todo = std::mem::take(&mut self.dirty);
         for i in 0..todo.len() {
-            for &n in &self.lower[todo[i] as usize][1..] {
+            for &n in &self.layer.lower(todo[i])[1..] {
                 if n != NONE && !self.is_dirty[n as usize] {
                     self.is_dirty[n as usize] = true;
                     todo.push(n);
@@ -205,13 +202,24 @@ impl TsdfMap {
         todo.len()
     }
 
+    /// Sets the marching-cubes weight threshold; when it changes, every block is re-meshed on
+    /// the next [`TsdfMap::update_mesh`].
+    pub fn set_weight_threshold(&mut self, weight_threshold: f32) {
+        if self.config.weight_threshold != weight_threshold {
+            self.config.weight_threshold = weight_threshold;
+            for id in 0..self.layer.len() as u32 {
+                self.mark_dirty(id);
+            }
+        }
+    }
+
     /// The welded world mesh: the union of all block meshes (after [`TsdfMap::update_mesh`])
     /// with vertices on shared edges merged, so no vertex is duplicated on block borders and
     /// the mesh has no cracks. Vertex order is deterministic (blocks in sorted key order).
     /// Triangles wind counter-clockwise seen from free space; colours are sRGB `[0, 1]`.
-    pub fn extract_mesh(&mut self, weight_threshold: f32) -> TriMesh {
-        self.update_mesh(weight_threshold);
-        let ids: Vec<u32> = (0..self.blocks.len() as u32).collect();
+    pub fn extract_mesh(&mut self) -> TriMesh {
+        self.update_mesh();
+        let ids: Vec<u32> = (0..self.layer.len() as u32).collect();
         self.fill_colours(&ids);
         self.weld(ids, |_| true)
     }
@@ -233,8 +241,8 @@ impl TsdfMap {
 
     /// Like [`TsdfMap::extract_mesh`] but keeps only triangles with at least one vertex inside
     /// the world box `[min, max]` (metres); only blocks near the box are visited.
-    pub fn extract_mesh_in_box(&mut self, min: Vec3, max: Vec3, weight_threshold: f32) -> TriMesh {
-        self.update_mesh(weight_threshold);
+    pub fn extract_mesh_in_box(&mut self, min: Vec3, max: Vec3) -> TriMesh {
+        self.update_mesh();
         let margin = Vec3::splat(self.config.voxel_size_m);
         let ids = self.blocks_where(min - margin, max + margin, |_, _| true);
         self.fill_colours(&ids);
@@ -246,7 +254,7 @@ impl TsdfMap {
     /// triangles that pass `keep`.
     fn weld(&self, mut ids: Vec<u32>, keep: impl Fn(&[Vec3; 3]) -> bool) -> TriMesh {
         ids.sort_unstable_by_key(|&i| {
-            let k = self.keys[i as usize];
+            let k = self.layer.key(i);
             (k.x, k.y, k.z)
         });
         let mut out = TriMesh::default();
@@ -257,7 +265,7 @@ impl TsdfMap {
             if m.is_empty() {
                 continue;
             }
-            let origin = self.keys[id as usize] * BLOCK_SIZE;
+            let origin = self.layer.key(id) * BLOCK_SIZE;
             local_to_global.clear();
             local_to_global.resize(m.positions.len(), u32::MAX);
             for tri in &m.triangles {
@@ -305,13 +313,13 @@ impl TsdfMap {
         let count = span.x * span.y * span.z;
         let kmin = (min.map(clamp) / bs).floor();
         let kmax = (max.map(clamp) / bs).floor();
-        let mut visit_super = |skey: IVec3, ids: &Vec<u32>| {
+        let mut visit_super = |skey: IVec3, ids: &[u32]| {
             let lo = (skey * SUPER_SIZE).as_vec3() * bs;
             if !pred(lo, lo + Vec3::splat(ss)) {
                 return;
             }
             for &id in ids {
-                let k = self.keys[id as usize];
+                let k = self.layer.key(id);
                 let kf = k.as_vec3();
                 if kf.cmplt(kmin).any() || kf.cmpgt(kmax).any() {
                     continue;
@@ -322,16 +330,16 @@ impl TsdfMap {
                 }
             }
         };
-        if count > self.super_index.len() as f64 {
-            for (skey, ids) in &self.super_index {
-                visit_super(*skey, ids);
+        if count > self.layer.super_block_count() as f64 {
+            for (skey, ids) in self.layer.super_blocks() {
+                visit_super(skey, ids);
             }
         } else {
             let (a, b) = (smin.as_ivec3(), smax.as_ivec3());
             for z in a.z..=b.z {
                 for y in a.y..=b.y {
                     for x in a.x..=b.x {
-                        if let Some(ids) = self.super_index.get(&IVec3::new(x, y, z)) {
+                        if let Some(ids) = self.layer.super_block(IVec3::new(x, y, z)) {
                             visit_super(IVec3::new(x, y, z), ids);
                         }
                     }
@@ -349,8 +357,8 @@ impl TsdfMap {
     /// rows lie wholly in front of or behind the surface.
     fn mesh_block(&self, id: u32, weight_threshold: f32, mesh: &mut BlockMesh, scratch: &mut MeshScratch) {
         mesh.clear();
-        let key = self.keys[id as usize];
-        let ids = self.upper[id as usize];
+        let key = self.layer.key(id);
+        let ids = self.layer.upper(id);
         let flags = ids.iter().filter(|&&n| n != NONE).fold(0u8, |f, &n| f | self.sign_flags[n as usize]);
         // No observed voxel on one side of the surface: no zero crossing (skip the gather).
         if flags != HAS_POSITIVE | HAS_NEGATIVE {
@@ -493,7 +501,7 @@ mod tests {
                 for x in -3..3 {
                     let key = IVec3::new(x, y, z);
                     let (id, _) = map.allocate(key);
-                    let block = &mut map.blocks[id as usize];
+                    let block = map.layer.block_mut(id);
                     for i in 0..BLOCK_VOXELS {
                         let l = IVec3::new(i as i32 % 8, i as i32 / 8 % 8, i as i32 / 64);
                         let p = ((key * BLOCK_SIZE + l).as_vec3() + Vec3::splat(0.5)) * cfg.voxel_size_m;
@@ -509,10 +517,12 @@ mod tests {
                         block.set_voxel(i, v);
                     }
                     map.refresh_sign_flags(id);
+                    // written directly, not by integrate: queue the block for meshing
+                    map.mark_dirty(id);
                 }
             }
         }
-        let mesh = map.extract_mesh(1.0);
+        let mesh = map.extract_mesh();
         // Dense reference: every cell whose 8 corners are observed with weight >= 1.
         let cases = &table().cases;
         let (mut triangles, mut edges) = (0usize, FxHashSet::default());
@@ -542,9 +552,9 @@ mod tests {
         assert!(triangles > 1000, "{triangles}");
         assert_eq!(mesh.triangles.len(), triangles);
         assert_eq!(mesh.positions.len(), edges.len());
-        let got: FxHashSet<EdgeKey> = (0..map.blocks.len())
+        let got: FxHashSet<EdgeKey> = (0..map.layer.len())
             .flat_map(|id| {
-                let origin = map.keys[id] * BLOCK_SIZE;
+                let origin = map.layer.key(id as u32) * BLOCK_SIZE;
                 map.meshes[id].edges.iter().map(move |&s| {
                     let (l, axis) = edge_of_slot(s);
                     (origin + l, axis as u8)

@@ -31,9 +31,9 @@ impl TsdfMap {
     /// Writes the map in the versioned binary format described in this module (blocks sorted
     /// by key, so equal maps give identical bytes), ending with a CRC-32.
     pub fn write_to(&self, w: &mut impl Write) -> Result<(), MapError> {
-        let mut ids: Vec<u32> = (0..self.blocks.len() as u32).collect();
+        let mut ids: Vec<u32> = (0..self.layer.len() as u32).collect();
         ids.sort_unstable_by_key(|&i| {
-            let k = self.keys[i as usize];
+            let k = self.layer.key(i);
             (k.x, k.y, k.z)
         });
         let mut buf = Vec::with_capacity(HEADER_BYTES + ids.len() * BLOCK_BYTES + 4);
@@ -47,11 +47,11 @@ impl TsdfMap {
         buf.extend_from_slice(&c.weight_cap.unwrap_or(0.0).to_le_bytes());
         buf.extend_from_slice(&(ids.len() as u64).to_le_bytes());
         for id in ids {
-            let k = self.keys[id as usize];
+            let k = self.layer.key(id);
             for v in [k.x, k.y, k.z] {
                 buf.extend_from_slice(&v.to_le_bytes());
             }
-            for vox in self.blocks[id as usize].voxels() {
+            for vox in self.layer.block(id).voxels() {
                 for v in [vox.tsdf, vox.weight, vox.colour[0], vox.colour[1], vox.colour[2]] {
                     buf.extend_from_slice(&v.to_le_bytes());
                 }
@@ -97,6 +97,7 @@ impl TsdfMap {
                 let cap = cur.f32()?;
                 (has != 0).then_some(cap)
             },
+            weight_threshold: 1.0,
         };
         let count = cur.u64()?;
         let expected = (count as u128) * BLOCK_BYTES as u128 + HEADER_BYTES as u128 + 4;
@@ -135,7 +136,7 @@ impl TsdfMap {
                 }
                 block.set_voxel(i, Voxel { tsdf, weight, colour });
             }
-            map.blocks[id as usize] = block;
+            *map.layer.block_mut(id) = block;
             map.refresh_sign_flags(id);
             map.mark_dirty(id);
         }

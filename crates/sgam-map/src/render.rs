@@ -156,8 +156,8 @@ impl TsdfMap {
         self.blocks_where(lo, hi, |a, b| frustum.intersects_aabb(a, b))
     }
 
-    /// Z-buffered rasterization of the map's block meshes at `camera` (re-meshes dirty blocks
-    /// first with the last weight threshold used, 1.0 if none).
+    /// Z-buffered rasterization of the map's block meshes at `camera`, after re-meshing the
+    /// dirty blocks (with the map's weight threshold).
     ///
     /// Only blocks whose AABB intersects the frustum (`depth_min_m..depth_max_m`) are touched.
     /// Depth is perspective-correct (`1/z` interpolated in screen space); colour likewise.
@@ -170,13 +170,12 @@ impl TsdfMap {
     /// Blocks are split into contiguous chunks rasterized in parallel, each into its own
     /// z-buffer; the merge keeps the nearest hit and, on exact ties, the earlier chunk, so the
     /// result is deterministic whatever the number of threads.
-    pub fn render(&mut self, camera: &Camera) -> Rendered {
-        let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
-        self.update_mesh(threshold);
+    pub fn remesh_and_rasterize(&mut self, camera: &Camera) -> Rendered {
+        self.update_mesh();
         self.rasterize(camera)
     }
 
-    /// The rasterizer behind [`TsdfMap::render`], on the block meshes as they are (no
+    /// The rasterizer behind [`TsdfMap::remesh_and_rasterize`], on the block meshes as they are (no
     /// re-meshing).
     pub fn rasterize(&self, camera: &Camera) -> Rendered {
         self.rasterize_range(camera, self.config.depth_min_m, self.config.depth_max_m)
@@ -214,12 +213,12 @@ impl TsdfMap {
         out
     }
 
-    /// Planar depth only (metres, `0` where nothing was hit) of [`TsdfMap::render`]: what the
-    /// generator's guidance needs. Re-meshes dirty blocks first, like `render`; the depth is
-    /// bit-identical to `render(camera).depth_m`, without the colour and facing work.
-    pub fn render_depth(&mut self, camera: &Camera) -> Image<f32> {
-        let threshold = self.mesh_weight_threshold.unwrap_or(1.0);
-        self.update_mesh(threshold);
+    /// Planar depth only (metres, `0` where nothing was hit) of [`TsdfMap::remesh_and_rasterize`]: what the
+    /// generator's guidance needs. Re-meshes dirty blocks first, like `remesh_and_rasterize`; the
+    /// depth is bit-identical to `remesh_and_rasterize(camera).depth_m`, without the colour and
+    /// facing work.
+    pub fn remesh_and_rasterize_depth(&mut self, camera: &Camera) -> Image<f32> {
+        self.update_mesh();
         self.rasterize_depth(camera)
     }
 
@@ -406,7 +405,7 @@ impl TsdfMap {
             let bkey = floor_ivec3(p / bs);
             if bkey != last_block {
                 last_block = bkey;
-                if self.index.contains_key(&bkey) {
+                if self.layer.contains(bkey) {
                     entered += 1;
                 } else {
                     // Skip the unallocated block: every trilinear stencil of a point in it reads it.
@@ -485,7 +484,7 @@ impl<'a> BlockCache<'a> {
         let k = block_of_voxel(g);
         if self.key != Some(k) {
             self.key = Some(k);
-            self.block = map.index.get(&k).map(|&i| &map.blocks[i as usize]);
+            self.block = map.layer.block_at(k);
         }
         let l = voxel_in_block(g);
         self.block.map(|b| b.voxel(local_index(l.x, l.y, l.z)))

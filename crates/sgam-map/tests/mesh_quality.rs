@@ -11,8 +11,14 @@ use sgam_map::{TsdfConfig, TsdfMap};
 fn sphere_map(voxel: f32) -> (TsdfMap, f32) {
     let radius = 0.5;
     let scene = [Shape::Sphere { centre: Vec3::ZERO, radius, colour: [0.8, 0.2, 0.1] }];
-    let cfg =
-        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 5.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: voxel,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 5.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     for dir in fibonacci_directions(24) {
         let cam = camera(dir * 2.0, Vec3::ZERO, 160, 160, 160.0);
@@ -26,7 +32,7 @@ fn sphere_map(voxel: f32) -> (TsdfMap, f32) {
 fn fused_sphere_is_accurate_closed_and_outward_facing() {
     let voxel = 0.02;
     let (mut map, radius) = sphere_map(voxel);
-    let mesh = map.extract_mesh(1.0);
+    let mesh = map.extract_mesh();
     assert!(mesh.triangles.len() > 1000, "{} triangles", mesh.triangles.len());
     // Every vertex within half a voxel of the true surface, and no systematic offset: measured
     // over 11,982 vertices, mean signed error +1.3 mm (0.065 voxel: projective distances
@@ -81,8 +87,14 @@ fn incremental_meshing_equals_meshing_from_scratch() {
         Shape::Plane { normal: Vec3::Z, offset: 0.0 },
         Shape::Cuboid { min: Vec3::new(-0.3, -0.2, 0.0), max: Vec3::new(0.2, 0.3, 0.45), colour: [0.1, 0.7, 0.3] },
     ];
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.03, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 6.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.03,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 6.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut incremental = TsdfMap::new(cfg);
     let mut batch = TsdfMap::new(cfg);
     let eyes =
@@ -92,7 +104,7 @@ fn incremental_meshing_equals_meshing_from_scratch() {
         let cam = camera(eye, Vec3::ZERO, 96, 72, 80.0);
         let frame = render_analytic(&scene, &cam);
         let stats = incremental.integrate(&frame, &cam);
-        remeshed.push((incremental.update_mesh(1.0), stats.blocks_updated));
+        remeshed.push((incremental.update_mesh(), stats.blocks_updated));
         batch.integrate(&frame, &cam);
     }
     // After the first call, only dirty blocks and their lower neighbours are re-meshed.
@@ -100,8 +112,8 @@ fn incremental_meshing_equals_meshing_from_scratch() {
         assert!(n <= 8 * updated, "re-meshed {n} blocks for {updated} updated");
     }
     assert!(remeshed[1].0 < incremental.block_count(), "{remeshed:?}");
-    let a = incremental.extract_mesh(1.0);
-    let b = batch.extract_mesh(1.0);
+    let a = incremental.extract_mesh();
+    let b = batch.extract_mesh();
     assert!(!a.triangles.is_empty());
     assert_eq!(a, b);
 }
@@ -110,14 +122,20 @@ fn incremental_meshing_equals_meshing_from_scratch() {
 fn plane_vertices_lie_on_the_plane() {
     let scene = [Shape::Plane { normal: Vec3::Z, offset: 0.0 }];
     let voxel = 0.04;
-    let cfg =
-        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: voxel,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 8.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     for eye in [Vec3::new(0.5, 0.0, 2.0), Vec3::new(-0.5, 0.5, 2.5), Vec3::new(0.0, -0.7, 1.5)] {
         let cam = camera(eye, Vec3::new(0.0, 0.0, 0.0), 128, 96, 100.0);
         map.integrate(&render_analytic(&scene, &cam), &cam);
     }
-    let mesh = map.extract_mesh(1.0);
+    let mesh = map.extract_mesh();
     assert!(mesh.triangles.len() > 500);
     // A plane's TSDF is linear, so marching cubes puts vertices on it up to the depth read at the
     // nearest pixel instead of at the voxel's exact projection. Measured over 5,912 vertices:
@@ -131,7 +149,7 @@ fn plane_vertices_lie_on_the_plane() {
     // of the box on every axis, and the area lies between the square's and that of the square
     // grown by a voxel on each side, (1 + 2 voxel)^2 (1 % allowed for the triangles' tilt).
     let (lo, hi) = (Vec3::new(-0.5, -0.5, -0.2), Vec3::new(0.5, 0.5, 0.2));
-    let boxed = map.extract_mesh_in_box(lo, hi, 1.0);
+    let boxed = map.extract_mesh_in_box(lo, hi);
     let in_box = |p: &Vec3| p.cmpge(lo).all() && p.cmple(hi).all();
     let expected = mesh.triangles.iter().filter(|t| t.iter().any(|i| in_box(&mesh.positions[*i as usize]))).count();
     assert_eq!(boxed.triangles.len(), expected);
@@ -159,8 +177,14 @@ fn plane_vertices_lie_on_the_plane() {
 
 #[test]
 fn weight_cap_bounds_the_weight_and_tracks_changes() {
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.05, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: Some(4.0) };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.05,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 8.0,
+        weight_cap: Some(4.0),
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     let cam = camera(Vec3::new(0.0, 0.0, 2.0), Vec3::ZERO, 64, 48, 60.0);
     let near = render_analytic(&[Shape::Plane { normal: Vec3::Z, offset: 0.0 }], &cam);
@@ -191,9 +215,37 @@ fn weight_cap_bounds_the_weight_and_tracks_changes() {
     assert_eq!(max_weight(&map), 4.0);
     assert_eq!(max_weight(&uncapped), 20.0);
     for (map, expect) in [(&mut map, 0.1 * (1.0 - 0.75f32.powi(10))), (&mut uncapped, 0.05)] {
-        let mesh = map.extract_mesh(1.0);
+        let mesh = map.extract_mesh();
         assert!(mesh.positions.len() > 1000, "{} vertices", mesh.positions.len());
         let worst = mesh.positions.iter().map(|p| (p.z - expect).abs()).fold(0.0, f32::max);
         assert!(worst < 1e-4, "surface expected at z = {expect}: worst vertex {worst} m off");
     }
+}
+
+#[test]
+fn the_weight_threshold_is_configuration_and_changing_it_re_meshes() {
+    // 24 views: surface voxels carry weights up to 24; a threshold above every weight meshes
+    // nothing, and going back gives the first mesh exactly; a map configured with the higher
+    // threshold from the start meshes like one switched to it
+    let (mut map, _) = sphere_map(0.04);
+    let first = map.extract_mesh();
+    assert!(!first.triangles.is_empty());
+    map.set_weight_threshold(1000.0);
+    assert!(map.extract_mesh().triangles.is_empty());
+    map.set_weight_threshold(6.0);
+    let six = map.extract_mesh();
+    assert!(!six.triangles.is_empty() && six.triangles.len() < first.triangles.len());
+    map.set_weight_threshold(1.0);
+    let again = map.extract_mesh();
+    assert_eq!((again.positions, again.triangles), (first.positions, first.triangles));
+    let (fresh, _) = sphere_map(0.04);
+    let mut fresh = TsdfMap::read_from(&mut {
+        let mut b = Vec::new();
+        fresh.write_to(&mut b).unwrap();
+        std::io::Cursor::new(b)
+    })
+    .unwrap();
+    fresh.set_weight_threshold(6.0);
+    let six_fresh = fresh.extract_mesh();
+    assert_eq!((six_fresh.positions, six_fresh.triangles), (six.positions, six.triangles));
 }

@@ -1,4 +1,4 @@
-//! Property tests of the map reader (issue 18): arbitrary bytes and damaged map files never make
+//! Property tests of the map reader: arbitrary bytes and damaged map files never make
 //! `TsdfMap::read_from` panic, and every damage to a valid file (any flipped byte, any cut) is
 //! an error, never a silently different map.
 #![allow(clippy::unwrap_used)]

@@ -17,6 +17,7 @@ fn small_map() -> TsdfMap {
         depth_min_m: 0.1,
         depth_max_m: 6.0,
         weight_cap: Some(50.0),
+        weight_threshold: 1.0,
     };
     let mut map = TsdfMap::new(cfg);
     for eye in [Vec3::new(1.5, 0.0, 1.5), Vec3::new(-1.0, 1.0, 1.5)] {
@@ -40,7 +41,7 @@ fn save_load_is_bit_exact() {
     let mut again = Vec::new();
     loaded.write_to(&mut again).unwrap();
     assert_eq!(bytes, again);
-    assert_eq!(loaded.extract_mesh(1.0), map.extract_mesh(1.0));
+    assert_eq!(loaded.extract_mesh(), map.extract_mesh());
 }
 
 #[test]
@@ -95,15 +96,21 @@ fn corrupt_streams_are_errors() {
 #[test]
 fn integration_meshing_and_rendering_cost_depends_on_the_frame_not_the_map() {
     let scene = [Shape::Plane { normal: Vec3::Z, offset: 0.0 }];
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.05, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 4.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.05,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 4.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let probe = camera(Vec3::new(0.0, 0.0, 2.0), Vec3::new(0.2, 0.0, 0.0), 64, 48, 50.0);
     let probe_frame = render_analytic(&scene, &probe);
 
     let mut small = TsdfMap::new(cfg);
     let first = small.integrate(&probe_frame, &probe);
-    small.update_mesh(1.0);
-    let render_small = small.render(&probe);
+    small.update_mesh();
+    let render_small = small.remesh_and_rasterize(&probe);
 
     // A large map: many frames far away along x, then the same probe frame.
     let mut large = TsdfMap::new(cfg);
@@ -112,16 +119,16 @@ fn integration_meshing_and_rendering_cost_depends_on_the_frame_not_the_map() {
         let cam = camera(Vec3::new(x, 0.0, 2.0), Vec3::new(x + 0.2, 0.0, 0.0), 64, 48, 50.0);
         large.integrate(&render_analytic(&scene, &cam), &cam);
     }
-    large.update_mesh(1.0);
+    large.update_mesh();
     let before = large.block_count();
     assert!(before > 20 * first.blocks_touched, "{before} blocks vs {}", first.blocks_touched);
     let second = large.integrate(&probe_frame, &probe);
     assert_eq!(second.blocks_touched, first.blocks_touched);
     assert_eq!(second.blocks_allocated, first.blocks_allocated);
     assert_eq!(second.voxels_updated, first.voxels_updated);
-    let remeshed = large.update_mesh(1.0);
+    let remeshed = large.update_mesh();
     assert!(remeshed <= 8 * second.blocks_updated);
-    let render_large = large.render(&probe);
+    let render_large = large.remesh_and_rasterize(&probe);
     assert_eq!(render_large.blocks_visited, render_small.blocks_visited);
     assert_eq!(render_large.depth_m, render_small.depth_m);
     // Integrating the probe again touches the same blocks, allocates none.
@@ -147,7 +154,7 @@ fn bad_frames_and_poses_do_not_panic() {
     let mut bad = cam;
     bad.world_from_camera.translation.x = f32::NAN;
     assert_eq!(map.integrate(&frame, &bad).voxels_updated, 0);
-    assert!(!map.render(&bad).covered.iter().any(|c| *c));
+    assert!(!map.remesh_and_rasterize(&bad).covered.iter().any(|c| *c));
     assert!(!map.ray_cast(&bad).covered.iter().any(|c| *c));
     // A frame smaller than the intrinsics claim (8 x 6 against 32 x 24) is read at its own size:
     // it integrates exactly like the full frame with every pixel outside its 8 x 6 corner made

@@ -15,8 +15,14 @@ fn scene() -> Vec<Shape> {
 }
 
 fn fused(voxel: f32) -> TsdfMap {
-    let cfg =
-        TsdfConfig { voxel_size_m: voxel, trunc_voxels: 4.0, depth_min_m: 0.1, depth_max_m: 8.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: voxel,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.1,
+        depth_max_m: 8.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     let s = scene();
     for i in 0..10 {
@@ -67,7 +73,7 @@ fn rasterized_depth_matches_analytic_depth() {
     let mut map = fused(voxel);
     // A novel view between the fused ones.
     let cam = camera(Vec3::new(1.2, 1.2, 1.9), Vec3::new(0.0, 0.0, 0.1), 128, 96, 110.0);
-    let r = map.render(&cam);
+    let r = map.remesh_and_rasterize(&cam);
     let (coverage, p95, within) = compare(&r.depth_m, &r.covered, &cam, 0.5 * voxel);
     assert!(coverage > 0.97, "coverage {coverage}");
     assert!(within > 0.99, "only {within} within half a voxel (p95 {p95})");
@@ -89,7 +95,7 @@ fn rasterized_depth_matches_analytic_depth() {
     assert!(colour_err[colour_err.len() * 9 / 10] < 0.05, "colour p90 {}", colour_err[colour_err.len() * 9 / 10]);
     // The depth-only path (what the generator uses) gives the same depth, bit for bit, with
     // any number of threads (its work split differs from the shaded one's only in chunking).
-    let depth = map.render_depth(&cam);
+    let depth = map.remesh_and_rasterize_depth(&cam);
     assert_eq!(depth, r.depth_m);
     let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     assert_eq!(one.install(|| map.rasterize_depth(&cam)), r.depth_m);
@@ -97,7 +103,7 @@ fn rasterized_depth_matches_analytic_depth() {
     assert_eq!(three.install(|| map.rasterize(&cam)), r);
     // Vertex colours are computed on the fly by the rasterizer until an extraction caches
     // them: both give the same picture.
-    assert!(!map.extract_mesh(1.0).colours.is_empty());
+    assert!(!map.extract_mesh().colours.is_empty());
     assert_eq!(map.rasterize(&cam), r);
 }
 
@@ -112,7 +118,7 @@ fn ray_cast_matches_analytic_depth_and_the_rasterizer() {
     assert!(within > 0.99, "only {within} within half a voxel (p95 {p95})");
     // Measured p95: 3.4 mm = 0.17 voxel; the bound leaves 75 % margin.
     assert!(p95 < 0.3 * voxel, "p95 {p95} m");
-    let r = map.render(&cam);
+    let r = map.remesh_and_rasterize(&cam);
     let both: Vec<bool> = rc.covered.iter().zip(&r.covered).map(|(a, b)| *a && *b).collect();
     let mut diffs: Vec<f32> =
         (0..both.len()).filter(|i| both[*i]).map(|i| (rc.depth_m.data[i] - r.depth_m.data[i]).abs()).collect();
@@ -125,20 +131,26 @@ fn back_faces_occlude_and_are_flagged() {
     // A camera inside the sphere of the mesh test sees only back faces.
     let radius = 0.5;
     let scene = [Shape::Sphere { centre: Vec3::ZERO, radius, colour: [0.5; 3] }];
-    let cfg =
-        TsdfConfig { voxel_size_m: 0.03, trunc_voxels: 4.0, depth_min_m: 0.05, depth_max_m: 5.0, weight_cap: None };
+    let cfg = TsdfConfig {
+        voxel_size_m: 0.03,
+        trunc_voxels: 4.0,
+        depth_min_m: 0.05,
+        depth_max_m: 5.0,
+        weight_cap: None,
+        weight_threshold: 1.0,
+    };
     let mut map = TsdfMap::new(cfg);
     for dir in fibonacci_directions(16) {
         let cam = camera(dir * 2.0, Vec3::ZERO, 96, 96, 96.0);
         map.integrate(&render_analytic(&scene, &cam), &cam);
     }
     let inside = camera(Vec3::ZERO, Vec3::X, 64, 64, 40.0);
-    let r = map.render(&inside);
+    let r = map.remesh_and_rasterize(&inside);
     let covered = r.covered.iter().filter(|c| **c).count();
     assert_eq!(covered, 64 * 64);
     assert!(r.back_facing.iter().all(|b| *b));
     let outside = camera(Vec3::new(2.0, 0.0, 0.0), Vec3::ZERO, 64, 64, 60.0);
-    let r = map.render(&outside);
+    let r = map.remesh_and_rasterize(&outside);
     assert!(r.covered.iter().zip(&r.back_facing).all(|(c, b)| !(*c && *b)), "front view hits a back face");
 }
 
@@ -149,11 +161,11 @@ fn cameras_in_the_middle_of_the_map_render_without_panicking() {
     let voxel = 0.04;
     let map = {
         let mut m = fused(voxel);
-        m.update_mesh(1.0);
+        m.update_mesh();
         m
     };
     let (near, far) = (map.config().depth_min_m, map.config().depth_max_m);
-    let mesh = map.clone().extract_mesh(1.0);
+    let mesh = map.clone().extract_mesh();
     let vertex = mesh.positions[mesh.positions.len() / 2];
     let grazing = (Vec3::new(0.0, 0.0, 1e-4), Vec3::new(1.0, 0.0, 1e-4));
     let inside = (Vec3::new(0.3, -0.2, 0.25), Vec3::new(0.3, 0.8, 0.25));

@@ -4,15 +4,42 @@ use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use sgam_core::TriMesh;
 
-/// Median of a slice (NaNs sorted last); `None` when empty.
-pub fn median(values: &[f32]) -> Option<f32> {
+/// A float type [`median`] works on (`f32`, `f64`).
+pub trait Sortable: Copy {
+    /// IEEE total order (NaNs last).
+    fn total_order(&self, other: &Self) -> std::cmp::Ordering;
+    /// The mean of `a` and `b`.
+    fn mean_of(a: Self, b: Self) -> Self;
+}
+
+impl Sortable for f32 {
+    fn total_order(&self, other: &Self) -> std::cmp::Ordering {
+        self.total_cmp(other)
+    }
+    fn mean_of(a: Self, b: Self) -> Self {
+        0.5 * (a + b)
+    }
+}
+
+impl Sortable for f64 {
+    fn total_order(&self, other: &Self) -> std::cmp::Ordering {
+        self.total_cmp(other)
+    }
+    fn mean_of(a: Self, b: Self) -> Self {
+        0.5 * (a + b)
+    }
+}
+
+/// Median of a slice (NaNs sorted last; the mean of the middle two for an even count); `None`
+/// when empty. The workspace's one median (timings, distances, heights).
+pub fn median<T: Sortable>(values: &[T]) -> Option<T> {
     if values.is_empty() {
         return None;
     }
     let mut v = values.to_vec();
-    v.sort_by(|a, b| a.total_cmp(b));
+    v.sort_by(T::total_order);
     let n = v.len();
-    Some(if n % 2 == 1 { v[n / 2] } else { 0.5 * (v[n / 2 - 1] + v[n / 2]) })
+    Some(if n % 2 == 1 { v[n / 2] } else { T::mean_of(v[n / 2 - 1], v[n / 2]) })
 }
 
 /// Closest point on triangle `abc` to `p` (Ericson, Real-Time Collision Detection, 5.1.5).

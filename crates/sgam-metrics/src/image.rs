@@ -4,6 +4,13 @@ fn q8(x: f32) -> f64 {
     (x.clamp(0.0, 1.0) * 255.0).round() as f64
 }
 
+/// Peak signal-to-noise ratio in dB of a mean squared error `mse` for signals whose peak is
+/// `peak` (255 for 8-bit levels, 1 for `[0, 1]` values): `10 log10(peak^2 / mse)`. The one PSNR
+/// formula of the workspace ([`psnr`] and the trainer's reports use it).
+pub fn psnr_db(mse: f64, peak: f64) -> f64 {
+    10.0 * (peak * peak / mse).log10()
+}
+
 /// PSNR (dB) between two colour images on the 8-bit scale, over pixels where `mask` is true
 /// (all pixels when `None`). Returns `None` when no pixel is counted or sizes differ; identical
 /// images give `f64::INFINITY`.
@@ -26,7 +33,7 @@ pub fn psnr(a: &Image<[f32; 3]>, b: &Image<[f32; 3]>, mask: Option<&[bool]>) -> 
         return None;
     }
     let mse = se / n as f64;
-    Some(if mse == 0.0 { f64::INFINITY } else { 10.0 * (255.0f64 * 255.0 / mse).log10() })
+    Some(if mse == 0.0 { f64::INFINITY } else { psnr_db(mse, 255.0) })
 }
 
 fn gaussian_kernel() -> [f64; 11] {

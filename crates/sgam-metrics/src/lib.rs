@@ -1,4 +1,5 @@
-//! Metrics of the SGAM paper (DESIGN.md §7). Pure functions; no I/O.
+//! Metrics of the SGAM paper (image quality, geometry, scene- and world-level statistics). Pure
+//! functions; no I/O.
 //!
 //! # Concepts
 //! - Image metrics take `sgam_core::Image<[f32; 3]>` colour in `[0, 1]` and an optional pixel
@@ -11,7 +12,7 @@
 //!   point-cloud GAN metrics of Achlioptas et al.: JSD, MMD, COV, MinDist, 1-NNA.
 //! - World metrics ([`world`]) read a whole generated mesh (z up) as a 10 cm height field and
 //!   report, outside the seed's footprint, objects per 100 m^2, their footprints and colour
-//!   saturation, and ground roughness (DESIGN.md §7 "World level").
+//!   saturation, and ground roughness.
 //! - [`kid`]: kernel inception distance on any feature vectors (weight-free when the features
 //!   come from our own encoder).
 
@@ -21,5 +22,5 @@ pub mod kid;
 pub mod scene;
 pub mod world;
 
-pub use geometry::{chamfer, median, point_to_mesh_distances};
-pub use image::{disparity_l1, psnr, ssim, ssim_map};
+pub use geometry::{chamfer, median, point_to_mesh_distances, Sortable};
+pub use image::{disparity_l1, psnr, psnr_db, ssim, ssim_map};

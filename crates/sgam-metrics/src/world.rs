@@ -1,4 +1,4 @@
-//! World-level object statistics (DESIGN.md §7 "World level"): a mesh (metres, world frame, z up)
+//! World-level object statistics: a mesh (metres, world frame, z up)
 //! becomes a 10 cm height field; the area outside the seed's footprint (the "new area") is split
 //! into ground and objects, and we report object density, footprints, colour saturation and ground
 //! roughness. One-step scores cannot see a degenerate world (all ground, or all blobs); these can.
@@ -40,7 +40,13 @@ pub struct WorldStatsConfig {
 
 impl Default for WorldStatsConfig {
     fn default() -> Self {
-        Self { cell_m: 0.1, object_height_m: 0.25, min_object_area_m2: 0.2, exclusion_margin_m: 1.0, ground_window_m: 0.1 }
+        Self {
+            cell_m: 0.1,
+            object_height_m: 0.25,
+            min_object_area_m2: 0.2,
+            exclusion_margin_m: 1.0,
+            ground_window_m: 0.1,
+        }
     }
 }
 

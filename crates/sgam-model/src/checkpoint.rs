@@ -44,12 +44,8 @@ pub struct Manifest {
     pub files: BTreeMap<String, FileEntry>,
 }
 
-fn io(what: &str, path: &Path, e: std::io::Error) -> ModelError {
-    ModelError::Io(format!("{what} {}: {e}", path.display()))
-}
-
 fn entry(path: &Path) -> Result<FileEntry, ModelError> {
-    let bytes = std::fs::read(path).map_err(|e| io("reading", path, e))?;
+    let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
     Ok(FileEntry { bytes: bytes.len() as u64, crc32: crc32fast::hash(&bytes) })
 }
 
@@ -68,35 +64,34 @@ pub fn commit_folder(
 ) -> Result<PathBuf, ModelError> {
     let (new, cur, old) = (sibling(run_dir, name, "new"), run_dir.join(name), sibling(run_dir, name, "old"));
     if new.exists() {
-        std::fs::remove_dir_all(&new).map_err(|e| io("removing the unfinished", &new, e))?;
+        std::fs::remove_dir_all(&new).map_err(|e| ModelError::io(&new, e))?;
     }
-    std::fs::create_dir_all(&new).map_err(|e| io("creating", &new, e))?;
+    std::fs::create_dir_all(&new).map_err(|e| ModelError::io(&new, e))?;
     fill(&new)?;
     let mut files = BTreeMap::new();
-    for item in std::fs::read_dir(&new).map_err(|e| io("listing", &new, e))? {
-        let item = item.map_err(|e| io("listing", &new, e))?;
+    for item in std::fs::read_dir(&new).map_err(|e| ModelError::io(&new, e))? {
+        let item = item.map_err(|e| ModelError::io(&new, e))?;
         let file_name = item.file_name().to_string_lossy().into_owned();
         if file_name == MANIFEST || file_name.starts_with('.') {
             continue;
         }
         if !item.path().is_file() {
-            return Err(ModelError::Checkpoint(format!("{}: checkpoints hold files only", item.path().display())));
+            return Err(ModelError::checkpoint(&item.path(), "checkpoints hold files only"));
         }
         files.insert(file_name, entry(&item.path())?);
     }
     let manifest = Manifest { format: "sgam-checkpoint".into(), version: MANIFEST_VERSION, files };
-    let json = serde_json::to_vec_pretty(&manifest)
-        .map_err(|e| ModelError::Checkpoint(format!("serialising the manifest: {e}")))?;
+    let json = serde_json::to_vec_pretty(&manifest).map_err(|e| ModelError::state("serialising the manifest", e))?;
     write_atomic(&new.join(MANIFEST), &json)?;
     if cur.exists() {
         if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
+            std::fs::remove_dir_all(&old).map_err(|e| ModelError::io(&old, e))?;
         }
-        std::fs::rename(&cur, &old).map_err(|e| io("renaming", &cur, e))?;
+        std::fs::rename(&cur, &old).map_err(|e| ModelError::io(&cur, e))?;
     }
-    std::fs::rename(&new, &cur).map_err(|e| io("renaming", &new, e))?;
+    std::fs::rename(&new, &cur).map_err(|e| ModelError::io(&new, e))?;
     if old.exists() {
-        std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
+        std::fs::remove_dir_all(&old).map_err(|e| ModelError::io(&old, e))?;
     }
     Ok(cur)
 }
@@ -112,50 +107,50 @@ pub fn committed_folder(run_dir: &Path, name: &str) -> Option<PathBuf> {
 /// no other file is present. Errors name the file.
 pub fn verify_folder(dir: &Path) -> Result<Manifest, ModelError> {
     let path = dir.join(MANIFEST);
-    let len = std::fs::metadata(&path).map_err(|e| io("reading", &path, e))?.len();
+    let len = std::fs::metadata(&path).map_err(|e| ModelError::io(&path, e))?.len();
     if len > MAX_MANIFEST_BYTES {
-        return Err(ModelError::Checkpoint(format!("{}: {len} bytes, not a checkpoint manifest", path.display())));
+        return Err(ModelError::checkpoint(&path, format!("{len} bytes, not a checkpoint manifest")));
     }
-    let bytes = std::fs::read(&path).map_err(|e| io("reading", &path, e))?;
+    let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
     let manifest: Manifest = serde_json::from_slice(&bytes)
-        .map_err(|e| ModelError::Checkpoint(format!("{}: not a checkpoint manifest: {e}", path.display())))?;
+        .map_err(|e| ModelError::checkpoint(&path, format!("not a checkpoint manifest: {e}")))?;
     if manifest.format != "sgam-checkpoint" || manifest.version != MANIFEST_VERSION {
-        return Err(ModelError::Checkpoint(format!(
-            "{}: checkpoint format '{}' version {} (this build reads 'sgam-checkpoint' version {MANIFEST_VERSION})",
-            path.display(),
-            manifest.format,
-            manifest.version
-        )));
+        return Err(ModelError::checkpoint(
+            &path,
+            format!(
+                "checkpoint format '{}' version {} (this build reads 'sgam-checkpoint' version {MANIFEST_VERSION})",
+                manifest.format, manifest.version
+            ),
+        ));
     }
     for (name, want) in &manifest.files {
         if name.contains(['/', '\\']) || name.starts_with('.') {
-            return Err(ModelError::Checkpoint(format!("{}: bad file name '{name}'", path.display())));
+            return Err(ModelError::checkpoint(&path, format!("bad file name '{name}'")));
         }
         let file = dir.join(name);
         if !file.is_file() {
-            return Err(ModelError::Checkpoint(format!("{}: missing (listed in {MANIFEST})", file.display())));
+            return Err(ModelError::checkpoint(&file, format!("missing (listed in {MANIFEST})")));
         }
         let got = entry(&file)?;
         if got != *want {
-            return Err(ModelError::Checkpoint(format!(
-                "{}: {} bytes, CRC-32 {:#010x}; the manifest records {} bytes, {:#010x} (the checkpoint is corrupt or \
-                 mixed with another one)",
-                file.display(),
-                got.bytes,
-                got.crc32,
-                want.bytes,
-                want.crc32
-            )));
+            return Err(ModelError::checkpoint(
+                &file,
+                format!(
+                    "{} bytes, CRC-32 {:#010x}; the manifest records {} bytes, {:#010x} (the checkpoint is corrupt or \
+                     mixed with another one)",
+                    got.bytes, got.crc32, want.bytes, want.crc32
+                ),
+            ));
         }
     }
-    for item in std::fs::read_dir(dir).map_err(|e| io("listing", dir, e))? {
-        let item = item.map_err(|e| io("listing", dir, e))?;
+    for item in std::fs::read_dir(dir).map_err(|e| ModelError::io(dir, e))? {
+        let item = item.map_err(|e| ModelError::io(dir, e))?;
         let file_name = item.file_name().to_string_lossy().into_owned();
         if file_name != MANIFEST && !file_name.starts_with('.') && !manifest.files.contains_key(&file_name) {
-            return Err(ModelError::Checkpoint(format!(
-                "{}: not listed in {MANIFEST} (the checkpoint was changed after it was written)",
-                item.path().display()
-            )));
+            return Err(ModelError::checkpoint(
+                &item.path(),
+                format!("not listed in {MANIFEST} (the checkpoint was changed after it was written)"),
+            ));
         }
     }
     Ok(manifest)
@@ -191,7 +186,7 @@ mod tests {
         commit_folder(tmp.path(), "ckpt", |d| write(d, "a.bin", b"one")).unwrap();
         let err = commit_folder(tmp.path(), "ckpt", |d| {
             write(d, "a.bin", b"half")?;
-            Err(ModelError::Io("disk full".into()))
+            Err(ModelError::io(Path::new("a.bin"), std::io::Error::other("disk full")))
         })
         .unwrap_err();
         assert!(err.to_string().contains("disk full"));

@@ -4,7 +4,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::ModelError;
 
-/// How planar depth is coded as one network channel (DESIGN.md §5).
+/// How planar depth is coded as one network channel (the SGAM authors' normalised disparity, or
+/// alternatives).
 ///
 /// `s = (1/(z + offset) - 1/far) / (1/near - 1/far)`, channel `c = 2 s - 1`. `near_m` and `far_m`
 /// are in the offset space (i.e. compared with `z + offset`), as in the authors' code.

@@ -277,7 +277,7 @@ impl DecoderTuner {
         crate::checkpoint::commit_folder(run_dir, "ckpt", |new| {
             let meta = crate::refiner::weight_metadata(&self.model_config)?;
             save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
-            let bytes = self.optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
+            let bytes = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
             crate::params::write_atomic(&new.join("optim.bpk"), &bytes)?;
             let state = TuneState {
                 version: STATE_VERSION,
@@ -285,7 +285,7 @@ impl DecoderTuner {
                 config: self.config.clone(),
                 step: self.step,
             };
-            let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::Checkpoint(format!("state: {e}")))?;
+            let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
             crate::params::write_atomic(&new.join("state.json"), &json)
         })?;
         Ok(())
@@ -305,22 +305,20 @@ impl DecoderTuner {
         steps: Option<u64>,
     ) -> Result<Self, ModelError> {
         let dir = Self::checkpoint_dir(run_dir)
-            .ok_or_else(|| ModelError::Checkpoint(format!("{}: no checkpoint (ckpt/state.json)", run_dir.display())))?;
+            .ok_or_else(|| ModelError::checkpoint(run_dir, "no checkpoint (ckpt/state.json)"))?;
         crate::checkpoint::verify_folder(&dir)?;
         let path = dir.join("state.json");
-        let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
         let state: TuneState = serde_json::from_slice(&bytes)
-            .map_err(|e| ModelError::Checkpoint(format!("{}: not a decoder-tuning state: {e}", path.display())))?;
+            .map_err(|e| ModelError::checkpoint(&path, format!("not a decoder-tuning state: {e}")))?;
         if state.version != STATE_VERSION {
-            return Err(ModelError::Checkpoint(format!(
-                "{}: state version {} (this build reads {STATE_VERSION})",
-                path.display(),
-                state.version
-            )));
+            return Err(ModelError::checkpoint(
+                &path,
+                format!("state version {} (this build reads {STATE_VERSION})", state.version),
+            ));
         }
         let weights = dir.join("model.safetensors");
-        let wbytes =
-            std::fs::read(&weights).map_err(|e| ModelError::Io(format!("reading {}: {e}", weights.display())))?;
+        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
         let tensors =
             from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
         let mut config = state.config;
@@ -329,8 +327,7 @@ impl DecoderTuner {
         }
         let mut t = Self::new(&state.model_config, &tensors, encoder, encoder_config, &config)?;
         let optim = dir.join("optim.bpk");
-        t.optim =
-            adam().load(&optim).map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", optim.display())))?;
+        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
         t.step = state.step;
         Ok(t)
     }

@@ -2,8 +2,9 @@
 //! cell, so that sampling draws plausible completions instead of averaging them.
 //!
 //! A stage-2 encoder trained with L1 through the frozen decoder predicts the mean of everything
-//! that could fill a missing cell: grey ground, or the neighbouring colour continued (DESIGN.md
-//! §5). Here the target is the code the frozen stage-1 encoder assigns to the clean target
+//! that could fill a missing cell: grey ground, or the neighbouring colour continued (measured
+//! on our first models: objects never start or end, the ground drifts). Here the target is the
+//! code the frozen stage-1 encoder assigns to the clean target
 //! ([`target_codes`]), and the loss is the cross-entropy of that index under
 //!
 //! `p(k | guidance) = softmax_k(-||z - e_k||^2 / tau)`
@@ -635,18 +636,17 @@ impl CodeTrainer {
     /// Writes the checkpoint folder `run_dir/ckpt` atomically (see the module docs), with
     /// `model.safetensors` carrying the current `tau` in its embedded config.
     pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
-        let io = |what: &str, p: &Path, e: std::io::Error| ModelError::Io(format!("{what} {}: {e}", p.display()));
         let (new, cur, old) = (run_dir.join("ckpt.new"), run_dir.join("ckpt"), run_dir.join("ckpt.old"));
         if new.exists() {
-            std::fs::remove_dir_all(&new).map_err(|e| io("removing", &new, e))?;
+            std::fs::remove_dir_all(&new).map_err(|e| ModelError::io(&new, e))?;
         }
-        std::fs::create_dir_all(&new).map_err(|e| io("creating", &new, e))?;
+        std::fs::create_dir_all(&new).map_err(|e| ModelError::io(&new, e))?;
         let config = self.exported_config()?;
         let meta = crate::refiner::weight_metadata(&config)?;
         save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
-        let bytes = self.optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
+        let bytes = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
         write_atomic(&new.join("optim.bpk"), &bytes)?;
-        let bytes = self.optim_tau.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer: {e}")))?;
+        let bytes = self.optim_tau.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
         write_atomic(&new.join("optim_tau.bpk"), &bytes)?;
         let state = CodeState {
             version: STATE_VERSION,
@@ -658,17 +658,17 @@ impl CodeTrainer {
             rng_stream: self.rng.get_stream(),
             rng_word_pos: self.rng.get_word_pos(),
         };
-        let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::Checkpoint(format!("state: {e}")))?;
+        let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
         write_atomic(&new.join("state.json"), &json)?;
         if cur.exists() {
             if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
+                std::fs::remove_dir_all(&old).map_err(|e| ModelError::io(&old, e))?;
             }
-            std::fs::rename(&cur, &old).map_err(|e| io("renaming", &cur, e))?;
+            std::fs::rename(&cur, &old).map_err(|e| ModelError::io(&cur, e))?;
         }
-        std::fs::rename(&new, &cur).map_err(|e| io("renaming", &new, e))?;
+        std::fs::rename(&new, &cur).map_err(|e| ModelError::io(&new, e))?;
         if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(|e| io("removing", &old, e))?;
+            std::fs::remove_dir_all(&old).map_err(|e| ModelError::io(&old, e))?;
         }
         Ok(())
     }
@@ -683,24 +683,22 @@ impl CodeTrainer {
     /// the stored values.
     pub fn resume(run_dir: &Path, steps: Option<u64>, lr_decay_from: Option<u64>) -> Result<Self, ModelError> {
         let dir = Self::checkpoint_dir(run_dir)
-            .ok_or_else(|| ModelError::Checkpoint(format!("{}: no checkpoint (ckpt/state.json)", run_dir.display())))?;
+            .ok_or_else(|| ModelError::checkpoint(run_dir, "no checkpoint (ckpt/state.json)"))?;
         let path = dir.join("state.json");
-        let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
         let state: CodeState = serde_json::from_slice(&bytes)
-            .map_err(|e| ModelError::Checkpoint(format!("{}: not a generative stage-2 state: {e}", path.display())))?;
+            .map_err(|e| ModelError::checkpoint(&path, format!("not a generative stage-2 state: {e}")))?;
         if state.version != STATE_VERSION {
-            return Err(ModelError::Checkpoint(format!(
-                "{}: state version {} (this build reads {STATE_VERSION})",
-                path.display(),
-                state.version
-            )));
+            return Err(ModelError::checkpoint(
+                &path,
+                format!("state version {} (this build reads {STATE_VERSION})", state.version),
+            ));
         }
         if !state.log_tau.is_finite() {
-            return Err(ModelError::Checkpoint(format!("{}: log_tau is {}", path.display(), state.log_tau)));
+            return Err(ModelError::checkpoint(&path, format!("log_tau is {}", state.log_tau)));
         }
         let weights = dir.join("model.safetensors");
-        let wbytes =
-            std::fs::read(&weights).map_err(|e| ModelError::Io(format!("reading {}: {e}", weights.display())))?;
+        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
         let tensors =
             from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
         let mut train_config = state.train_config;
@@ -712,14 +710,12 @@ impl CodeTrainer {
         }
         let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
         let optim = dir.join("optim.bpk");
-        t.optim =
-            adam().load(&optim).map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", optim.display())))?;
+        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
         // (checkpoints of the first training run have no optim_tau.bpk: tau's Adam restarts)
         let optim_tau = dir.join("optim_tau.bpk");
         if optim_tau.exists() {
-            t.optim_tau = adam()
-                .load(&optim_tau)
-                .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", optim_tau.display())))?;
+            t.optim_tau =
+                adam().load(&optim_tau).map_err(|e| ModelError::checkpoint(&optim_tau, format!("cannot read: {e}")))?;
         }
         t.temperature = CodeTemperature::from_log(state.log_tau, &t.device).train();
         t.step = state.step;

@@ -48,7 +48,7 @@ pub use train::{train, PairSource, Stage, TrainConfig, TrainPair, TrainProgress,
 use thiserror::Error;
 
 /// Errors of the model crate; messages name the offending file or value.
-#[derive(Debug, Error, Clone, PartialEq)]
+#[derive(Debug, Error)]
 pub enum ModelError {
     /// An unusable model configuration.
     #[error("invalid model config: {0}")]
@@ -56,15 +56,55 @@ pub enum ModelError {
     /// Bad input data (sizes, empty batches).
     #[error("invalid input: {0}")]
     Input(String),
-    /// A weight file that does not fit the model.
+    /// Weights that do not fit the model (names, shapes, non-finite values).
     #[error("weights: {0}")]
     Weights(String),
-    /// A file-system error.
-    #[error("i/o: {0}")]
-    Io(String),
-    /// A checkpoint that cannot be read or resumed.
-    #[error("checkpoint: {0}")]
-    Checkpoint(String),
+    /// Reading, creating or removing a file or folder failed.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file or folder.
+        path: std::path::PathBuf,
+        /// The operating system's error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// An atomic write (`sgam_io::write_atomic`) failed; the error names the file.
+    #[error(transparent)]
+    Write(#[from] sgam_io::IoError),
+    /// A checkpoint file that exists but cannot be read or resumed.
+    #[error("{}: {msg}", path.display())]
+    Checkpoint {
+        /// The file or folder.
+        path: std::path::PathBuf,
+        /// What is wrong with it.
+        msg: String,
+    },
+    /// Training state (JSON, optimizer records) that cannot be serialised.
+    #[error("{what}")]
+    State {
+        /// Which state.
+        what: String,
+        /// Why.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+impl ModelError {
+    /// An [`ModelError::Io`] error on `path`.
+    pub fn io(path: &std::path::Path, source: std::io::Error) -> Self {
+        ModelError::Io { path: path.to_path_buf(), source }
+    }
+
+    /// A [`ModelError::Checkpoint`] error on `path`.
+    pub fn checkpoint(path: &std::path::Path, msg: impl Into<String>) -> Self {
+        ModelError::Checkpoint { path: path.to_path_buf(), msg: msg.into() }
+    }
+
+    /// A [`ModelError::State`] error: `what` could not be serialised because of `source`.
+    pub fn state(what: impl Into<String>, source: impl std::fmt::Display) -> Self {
+        ModelError::State { what: what.into(), source: source.to_string().into() }
+    }
 }
 
 /// The default compute device: burn `flex` (CPU), or the default `wgpu` adapter when built with

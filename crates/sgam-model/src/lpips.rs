@@ -108,7 +108,7 @@ impl Lpips {
     /// [`Lpips::load`] onto `device`. For use as a loss inside a training step, load it onto the
     /// autodiff device the images live on (`device.autodiff()`); its weights stay frozen there.
     pub fn load_on(path: &Path, device: &Device) -> Result<Self, ModelError> {
-        let bytes = std::fs::read(path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+        let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
         let with_path = |e: ModelError| ModelError::Weights(format!("{}: {}", path.display(), inner_message(e)));
         let (tensors, _) = from_safetensors_bytes(&bytes).map_err(with_path)?;
         Self::from_tensors(&tensors, device).map_err(with_path)
@@ -230,10 +230,7 @@ fn unit_normalise(f: Tensor<4>) -> Tensor<4> {
 /// The message of a model error without its category prefix (for re-wrapping with a path).
 fn inner_message(e: ModelError) -> String {
     match e {
-        ModelError::Config(m)
-        | ModelError::Input(m)
-        | ModelError::Weights(m)
-        | ModelError::Io(m)
-        | ModelError::Checkpoint(m) => m,
+        ModelError::Config(m) | ModelError::Input(m) | ModelError::Weights(m) => m,
+        other => other.to_string(),
     }
 }

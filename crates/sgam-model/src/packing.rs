@@ -1,4 +1,4 @@
-//! Input packing (DESIGN.md §5): RGB-D frames + missing mask <-> network tensors.
+//! Input packing: RGB-D frames + missing mask <-> network tensors.
 //!
 //! Input tensor `[B, 5, H, W]`: channels 0..3 = sRGB mapped to `[-1, 1]` (`2 c - 1`), channel 3 =
 //! normalised disparity `2 s - 1` with `s = (1/(z+offset) - 1/far) / (1/near - 1/far)` (not

@@ -35,12 +35,52 @@ pub fn param_id_for_path(path: &str) -> ParamId {
     ParamId::from(h)
 }
 
-#[derive(Default)]
-struct PathStack(Vec<String>);
+/// Sees each float parameter of a module with its path (in [`WithPath`]), and may replace it.
+trait NamedMapper {
+    fn map_named<const D: usize>(&mut self, path: &str, param: Param<Tensor<D>>) -> Param<Tensor<D>>;
+}
 
-impl PathStack {
-    fn path(&self) -> String {
-        self.0.join(".")
+/// Sees each float parameter of a module with its path (in [`WithPath`]).
+trait NamedVisitor {
+    fn visit_named<const D: usize>(&mut self, path: &str, param: &Param<Tensor<D>>);
+}
+
+/// The one traversal that names parameters: tracks the module path (field names joined by `.`)
+/// and hands each float parameter with its path to `inner`.
+struct WithPath<T> {
+    stack: Vec<String>,
+    inner: T,
+}
+
+impl<T> WithPath<T> {
+    fn new(inner: T) -> Self {
+        Self { stack: Vec::new(), inner }
+    }
+}
+
+impl<T: NamedMapper> ModuleMapper for WithPath<T> {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.stack.push(name.to_string());
+    }
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.stack.pop();
+    }
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let path = self.stack.join(".");
+        self.inner.map_named(&path, param)
+    }
+}
+
+impl<T: NamedVisitor> ModuleVisitor for WithPath<T> {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.stack.push(name.to_string());
+    }
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.stack.pop();
+    }
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let path = self.stack.join(".");
+        self.inner.visit_named(&path, param);
     }
 }
 
@@ -51,20 +91,12 @@ fn tensor_to_vec<const D: usize>(t: &Tensor<D>) -> Vec<f32> {
 /// Re-initialises every float parameter deterministically from `seed` and assigns path-derived ids.
 pub(crate) fn init_params<M: Module>(module: M, seed: u64) -> M {
     struct Init {
-        stack: PathStack,
         seed: u64,
         last_fan_in: usize,
     }
-    impl ModuleMapper for Init {
-        fn enter_module(&mut self, name: &str, _container_type: &str) {
-            self.stack.0.push(name.to_string());
-        }
-        fn exit_module(&mut self, _name: &str, _container_type: &str) {
-            self.stack.0.pop();
-        }
-        fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-            let path = self.stack.path();
-            let id = param_id_for_path(&path);
+    impl NamedMapper for Init {
+        fn map_named<const D: usize>(&mut self, path: &str, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            let id = param_id_for_path(path);
             let (_, old, mapper) = param.consume();
             let shape = old.dims();
             let n: usize = shape.iter().product();
@@ -95,31 +127,24 @@ pub(crate) fn init_params<M: Module>(module: M, seed: u64) -> M {
             Param::from_mapped_value(id, new, mapper)
         }
     }
-    module.map(&mut Init { stack: PathStack::default(), seed, last_fan_in: 1 })
+    module.map(&mut WithPath::new(Init { seed, last_fan_in: 1 }))
 }
 
 /// Exports every float parameter by path, sorted by path.
 pub fn named_tensors<M: Module>(module: &M) -> BTreeMap<String, NamedTensor> {
     struct Export {
-        stack: PathStack,
         out: BTreeMap<String, NamedTensor>,
     }
-    impl ModuleVisitor for Export {
-        fn enter_module(&mut self, name: &str, _container_type: &str) {
-            self.stack.0.push(name.to_string());
-        }
-        fn exit_module(&mut self, _name: &str, _container_type: &str) {
-            self.stack.0.pop();
-        }
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+    impl NamedVisitor for Export {
+        fn visit_named<const D: usize>(&mut self, path: &str, param: &Param<Tensor<D>>) {
             let t = param.val();
             let shape = t.dims().to_vec();
-            self.out.insert(self.stack.path(), NamedTensor { shape, values: tensor_to_vec(&t) });
+            self.out.insert(path.to_string(), NamedTensor { shape, values: tensor_to_vec(&t) });
         }
     }
-    let mut v = Export { stack: PathStack::default(), out: BTreeMap::new() };
+    let mut v = WithPath::new(Export { out: BTreeMap::new() });
     module.visit(&mut v);
-    v.out
+    v.inner.out
 }
 
 /// Number of scalar parameters of a module.
@@ -138,28 +163,20 @@ pub fn load_named<M: Module>(
     allow_unused: bool,
 ) -> Result<M, ModelError> {
     struct Import<'a> {
-        stack: PathStack,
         tensors: &'a BTreeMap<String, NamedTensor>,
         used: Vec<String>,
         errors: Vec<String>,
         allow_missing: bool,
     }
-    impl ModuleMapper for Import<'_> {
-        fn enter_module(&mut self, name: &str, _container_type: &str) {
-            self.stack.0.push(name.to_string());
-        }
-        fn exit_module(&mut self, _name: &str, _container_type: &str) {
-            self.stack.0.pop();
-        }
-        fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-            let path = self.stack.path();
-            let Some(src) = self.tensors.get(&path) else {
+    impl NamedMapper for Import<'_> {
+        fn map_named<const D: usize>(&mut self, path: &str, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            let Some(src) = self.tensors.get(path) else {
                 if !self.allow_missing {
                     self.errors.push(format!("missing parameter {path}"));
                 }
                 return param;
             };
-            self.used.push(path.clone());
+            self.used.push(path.to_string());
             let (id, old, mapper) = param.consume();
             let shape = old.dims();
             let n: usize = shape.iter().product();
@@ -181,8 +198,9 @@ pub fn load_named<M: Module>(
             Param::from_mapped_value(id, new, mapper)
         }
     }
-    let mut m = Import { stack: PathStack::default(), tensors, used: Vec::new(), errors: Vec::new(), allow_missing };
-    let module = module.map(&mut m);
+    let mut w = WithPath::new(Import { tensors, used: Vec::new(), errors: Vec::new(), allow_missing });
+    let module = module.map(&mut w);
+    let m = &mut w.inner;
     if !allow_unused {
         for name in tensors.keys() {
             if !m.used.contains(name) {
@@ -298,5 +316,5 @@ pub fn save_safetensors<M: Module>(
 /// Writes `bytes` to `path` atomically with [`sgam_io::write_atomic`] (a uniquely named
 /// temporary sibling, fsynced, renamed; removed on failure); errors name `path`.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), ModelError> {
-    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, bytes)).map_err(|e| ModelError::Io(e.to_string()))
+    Ok(sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, bytes))?)
 }

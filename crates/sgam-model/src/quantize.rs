@@ -2,7 +2,7 @@
 //! temperature sampling in missing cells, codebook usage statistics and k-means revival of dead
 //! codes.
 //!
-//! Loss (DESIGN.md §5, the authors' effective weighting):
+//! Loss (the SGAM authors' effective weighting):
 //! `||sg(z_q) - z||^2 + beta ||z_q - sg(z)||^2` with `beta = 0.25` — the commitment term (which
 //! moves the encoder) has weight 1 and the codebook term (which moves the codes) has weight beta.
 

@@ -67,9 +67,9 @@ pub fn load_model(
     config: Option<&Path>,
     device: &Device,
 ) -> Result<(VqModel, ModelConfig), ModelError> {
-    let bytes = std::fs::read(weights).map_err(|e| ModelError::Io(format!("reading {}: {e}", weights.display())))?;
+    let bytes = std::fs::read(weights).map_err(|e| ModelError::io(weights, e))?;
     let cfg = match config {
-        Some(p) => Some(std::fs::read(p).map_err(|e| ModelError::Io(format!("reading {}: {e}", p.display())))?),
+        Some(p) => Some(std::fs::read(p).map_err(|e| ModelError::io(p, e))?),
         None => None,
     };
     load_model_bytes(&bytes, cfg.as_deref(), device).map_err(|e| match e {

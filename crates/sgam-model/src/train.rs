@@ -1,4 +1,5 @@
-//! Two-stage training (DESIGN.md §5) as library functions the CLI calls.
+//! Two-stage training (stage 1: the VQ autoencoder on clean RGB-D; stage 2: the encoder on
+//! incomplete -> complete pairs, codebook and decoder frozen) as library functions the CLI calls.
 //!
 //! - Stage 1: autoencode clean RGB-D (zero mask), optionally without quantization for the first
 //!   `warmup_no_quant_steps`; L1 + gradient-L1 perceptual + quantizer loss, hinge PatchGAN from
@@ -61,8 +62,11 @@ pub struct TrainPair {
 
 /// Supplies training batches (random crops of size `crop` x `crop`), drawing randomness from `rng`.
 pub trait PairSource {
+    /// Error type of this source.
+    type Error: std::error::Error + Send + Sync + 'static;
+
     /// Returns `batch` pairs of `crop x crop` pixels.
-    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> anyhow::Result<Vec<TrainPair>>;
+    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>, Self::Error>;
 }
 
 /// Training stage.
@@ -396,8 +400,8 @@ pub enum TrainError {
     #[error(transparent)]
     Model(#[from] ModelError),
     /// The pair source failed.
-    #[error("pair source: {0}")]
-    Source(String),
+    #[error("pair source")]
+    Source(#[source] Box<dyn std::error::Error + Send + Sync>),
     /// A loss or a weight became non-finite; nothing was written after it.
     #[error("training diverged at step {step}: {what} (lower the learning rate); the last checkpoint is kept")]
     Diverged {
@@ -465,7 +469,7 @@ fn freeze_for_stage(model: VqModel, stage: Stage) -> VqModel {
 }
 
 fn read_weights(path: &Path) -> Result<std::collections::BTreeMap<String, crate::params::NamedTensor>, ModelError> {
-    let bytes = std::fs::read(path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+    let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
     Ok(from_safetensors_bytes(&bytes).map_err(|e| ModelError::Weights(format!("{}: {e}", path.display())))?.0)
 }
 
@@ -487,22 +491,24 @@ pub const CHECKPOINT_DIR: &str = "ckpt";
 pub fn read_checkpoint(run_dir: &Path) -> Result<Option<(PathBuf, CheckpointState)>, ModelError> {
     let Some(dir) = committed_folder(run_dir, CHECKPOINT_DIR) else {
         if run_dir.join("optim_model.bpk").exists() {
-            return Err(ModelError::Checkpoint(format!(
-                "{}: a checkpoint in the layout of an older sgam (five separate files that an interrupted save \
-                 could leave mixed); it cannot be verified, so it is not resumed: start a new run with \
-                 --init {}",
-                run_dir.display(),
-                run_dir.join("model.safetensors").display()
-            )));
+            return Err(ModelError::checkpoint(
+                run_dir,
+                format!(
+                    "a checkpoint in the layout of an older sgam (five separate files that an interrupted save \
+                     could leave mixed); it cannot be verified, so it is not resumed: start a new run with \
+                     --init {}",
+                    run_dir.join("model.safetensors").display()
+                ),
+            ));
         }
         return Ok(None);
     };
     verify_folder(&dir)?;
     let path = dir.join("state.json");
-    let bytes = std::fs::read(&path).map_err(|e| ModelError::Io(format!("reading {}: {e}", path.display())))?;
+    let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
     let state: CheckpointState = serde_json::from_slice(&bytes)
-        .map_err(|e| ModelError::Checkpoint(format!("{}: not a training state: {e}", path.display())))?;
-    let bad = |m: String| ModelError::Checkpoint(format!("{}: {m}", path.display()));
+        .map_err(|e| ModelError::checkpoint(&path, format!("not a training state: {e}")))?;
+    let bad = |m: String| ModelError::checkpoint(&path, m);
     if state.version != STATE_VERSION {
         return Err(bad(format!("state version {} (this build reads {STATE_VERSION})", state.version)));
     }
@@ -531,7 +537,7 @@ fn psnr_rgb(pred: &[f32], target: &[f32], b: usize, hw: usize) -> f32 {
         }
     }
     let mse = (se / n.max(1) as f64).max(1e-12);
-    (10.0 * (1.0 / mse).log10()) as f32
+    sgam_metrics::psnr_db(mse, 1.0) as f32
 }
 
 impl Trainer {
@@ -575,7 +581,7 @@ impl Trainer {
         if let Some(what) = self.non_finite_weight() {
             return Err(TrainError::Diverged { step: self.step, what });
         }
-        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::Io(format!("creating {}: {e}", run_dir.display())))?;
+        std::fs::create_dir_all(run_dir).map_err(|e| ModelError::io(run_dir, e))?;
         let meta = crate::refiner::weight_metadata(&self.model_config)?;
         let state = CheckpointState {
             version: STATE_VERSION,
@@ -588,26 +594,25 @@ impl Trainer {
             usage: self.usage.clone(),
             buffer: self.buffer.clone(),
         };
-        let json = serde_json::to_vec(&state).map_err(|e| ModelError::Checkpoint(format!("serialising state: {e}")))?;
+        let json = serde_json::to_vec(&state).map_err(|e| ModelError::state("serialising state", e))?;
         let dir = commit_folder(run_dir, CHECKPOINT_DIR, |new| {
             save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
             save_safetensors(&self.disc, &new.join("disc.safetensors"), WeightPrecision::F32, None)?;
             for (optim, name) in [(&self.optim_model, "optim_model.bpk"), (&self.optim_disc, "optim_disc.bpk")] {
-                let bytes = optim.into_bytes().map_err(|e| ModelError::Checkpoint(format!("optimizer {name}: {e}")))?;
+                let bytes = optim.into_bytes().map_err(|e| ModelError::state(format!("optimizer {name}"), e))?;
                 write_atomic(&new.join(name), &bytes)?;
             }
             write_atomic(&new.join("state.json"), &json)
         })?;
         let weights = std::fs::read(dir.join("model.safetensors"))
-            .map_err(|e| ModelError::Io(format!("reading {}: {e}", dir.join("model.safetensors").display())))?;
+            .map_err(|e| ModelError::io(&dir.join("model.safetensors"), e))?;
         write_atomic(&run_dir.join("model.safetensors"), &weights)?;
         let summary = RunSummary {
             step: self.step,
             model_config: self.model_config.clone(),
             train_config: self.train_config.clone(),
         };
-        let json = serde_json::to_vec_pretty(&summary)
-            .map_err(|e| ModelError::Checkpoint(format!("serialising the summary: {e}")))?;
+        let json = serde_json::to_vec_pretty(&summary).map_err(|e| ModelError::state("serialising the summary", e))?;
         write_atomic(&run_dir.join("config.json"), &json)?;
         Ok(())
     }
@@ -615,9 +620,8 @@ impl Trainer {
     /// Resumes from the committed checkpoint of `run_dir` ([`read_checkpoint`]). `steps`
     /// overrides the stored total when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>) -> Result<Self, ModelError> {
-        let (dir, state) = read_checkpoint(run_dir)?.ok_or_else(|| {
-            ModelError::Checkpoint(format!("{}: no checkpoint ({CHECKPOINT_DIR}/)", run_dir.display()))
-        })?;
+        let (dir, state) = read_checkpoint(run_dir)?
+            .ok_or_else(|| ModelError::checkpoint(run_dir, format!("no checkpoint ({CHECKPOINT_DIR}/)")))?;
         let mut train_config = state.train_config.clone();
         if let Some(s) = steps {
             train_config.steps = s;
@@ -633,11 +637,11 @@ impl Trainer {
             let path = dir.join(name);
             let optim = adam(&train_config)
                 .load(&path)
-                .map_err(|e| ModelError::Checkpoint(format!("reading {}: {e}", path.display())))?;
+                .map_err(|e| ModelError::checkpoint(&path, format!("cannot read: {e}")))?;
             optims.push(optim);
         }
-        let optim_disc = optims.pop().ok_or_else(|| ModelError::Checkpoint("optimizer".into()))?;
-        let optim_model = optims.pop().ok_or_else(|| ModelError::Checkpoint("optimizer".into()))?;
+        let optim_disc = optims.pop().ok_or_else(|| ModelError::checkpoint(&dir, "optimizer missing"))?;
+        let optim_model = optims.pop().ok_or_else(|| ModelError::checkpoint(&dir, "optimizer missing"))?;
         let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
         rng.set_stream(state.rng_stream);
         rng.set_word_pos(state.rng_word_pos);
@@ -657,10 +661,10 @@ impl Trainer {
     }
 
     /// One optimisation step on a batch from `source`.
-    pub fn step(&mut self, source: &mut dyn PairSource) -> Result<StepReport, TrainError> {
+    pub fn step<S: PairSource + ?Sized>(&mut self, source: &mut S) -> Result<StepReport, TrainError> {
         let cfg = self.train_config.clone();
         let batch =
-            source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(format!("{e:#}")))?;
+            source.next_batch(cfg.batch, cfg.crop, &mut self.rng).map_err(|e| TrainError::Source(Box::new(e)))?;
         self.step_on(&batch)
     }
 
@@ -898,11 +902,11 @@ pub struct TrainSummary {
 /// writing checkpoints into `run_dir` and calling `progress` after every step. A resumed run
 /// must be asked for its stored configuration ([`TrainError::ResumeMismatch`] otherwise) except
 /// `steps`, `ckpt_every`, `val_every` and, when given, `lr_decay_from`.
-pub fn train(
+pub fn train<S: PairSource + ?Sized>(
     run_dir: &Path,
     model_config: &ModelConfig,
     train_config: &TrainConfig,
-    source: &mut dyn PairSource,
+    source: &mut S,
     val: &[TrainPair],
     progress: &mut dyn FnMut(&TrainProgress),
 ) -> Result<TrainSummary, TrainError> {

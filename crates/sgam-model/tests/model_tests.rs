@@ -39,7 +39,9 @@ struct FixedSource {
 }
 
 impl PairSource for FixedSource {
-    fn next_batch(&mut self, batch: usize, _crop: u32, rng: &mut ChaCha8Rng) -> anyhow::Result<Vec<TrainPair>> {
+    type Error = std::convert::Infallible;
+
+    fn next_batch(&mut self, batch: usize, _crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>, Self::Error> {
         Ok((0..batch).map(|_| self.pairs[rng.random_range(0..self.pairs.len())].clone()).collect())
     }
 }

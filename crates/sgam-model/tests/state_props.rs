@@ -1,4 +1,4 @@
-//! Weights and training states under bad input (issue 18): non-finite weights are neither
+//! Weights and training states under bad input: non-finite weights are neither
 //! loaded nor written, f16 export refuses overflow, a diverging trainer stops with an error and
 //! writes nothing, checkpoints commit as a whole and are verified on resume; property tests of
 //! the safetensors parser, the checkpoint reader and the model configuration check.

@@ -14,22 +14,19 @@
 //! - **Dataset cameras** ([`dataset_cameras`]): the authors' 50 x 50 grid over `[-20, 20]^2`,
 //!   Blender rotation `Rx(0.3)`, `index = grid_i * 50 + grid_j` with `grid_i` along world y and
 //!   `grid_j` along world x, exactly as in their `transforms.json`.
-//! - **[`Sampler`]**: on-the-fly training pairs (target + nearby sources) for the model crate.
+//! - Training pairs are built on this crate by `sgam-pipeline` (`SynthPairs`, `codepairs`),
+//!   with the generator's own guidance function.
 //! - Determinism: every random draw comes from a seeded RNG; rendering hashes pixel and sample
 //!   indices, so output bytes do not depend on thread scheduling.
 
 mod cameras;
-mod error;
 mod render;
-mod sampler;
 mod scene;
 
 pub use cameras::{
     blender_camera, blender_rotation, dataset_cameras, dataset_intrinsics, grid_coordinate_m, DatasetCamera,
 };
-pub use error::SynthError;
 pub use render::{Hit, RenderConfig, Renderer, SynthFrame, GROUND_ID, SKY_ID};
-pub use sampler::{CameraJitter, Sample, Sampler, SamplerConfig};
 pub use scene::{
     paper_sun_dir, Material, MaterialMix, Object, Scene, SceneConfig, Shape, SPAWN_GRID, SPAWN_SPACING_M, SPAWN_X0_M,
     SPAWN_Y0_M,

@@ -4,9 +4,9 @@
 use glam::{Mat3, Vec2, Vec3};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sgam_core::{Camera, Image, RgbdFrame};
+use sgam_core::{linear_to_srgb, srgb_to_linear, Camera, Image, RgbdFrame};
 
-use crate::scene::{linear_to_srgb, Material, Scene, Shape};
+use crate::scene::{Material, Scene, Shape};
 
 /// Object id of the ground in [`SynthFrame::object_id`].
 pub const GROUND_ID: u32 = 0;
@@ -116,14 +116,6 @@ pub struct Renderer {
 
 const NO_PRIM: u32 = u32::MAX;
 const GRID_CELL_M: f32 = 1.0;
-
-fn srgb_to_linear(c: f32) -> f32 {
-    if c <= 0.04045 {
-        c / 12.92
-    } else {
-        ((c + 0.055) / 1.055).powf(2.4)
-    }
-}
 
 /// Integer hash (lowbias32 by Chris Wellons), for per-pixel sample patterns.
 #[inline]

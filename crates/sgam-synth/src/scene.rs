@@ -5,7 +5,7 @@ use glam::{Mat3, Vec2, Vec3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use sgam_core::Rigid3;
+use sgam_core::{linear_to_srgb, Rigid3};
 
 use crate::{GROUND_HALF_EXTENT_M, GROUND_Z_M, SUN_EULER_X_RAD};
 
@@ -493,16 +493,6 @@ impl Scene {
     /// Highest point of any object (world z, m); the ground height when there are none.
     pub fn top_z_m(&self) -> f32 {
         self.objects.iter().map(|o| o.aabb().1.z).fold(self.ground_z_m, f32::max)
-    }
-}
-
-/// sRGB transfer of a linear value in `[0, 1]`.
-pub(crate) fn linear_to_srgb(c: f32) -> f32 {
-    let c = c.clamp(0.0, 1.0);
-    if c <= 0.003_130_8 {
-        12.92 * c
-    } else {
-        1.055 * c.powf(1.0 / 2.4) - 0.055
     }
 }
 

@@ -57,7 +57,7 @@ pub struct BenchArgs {
 pub fn synthetic_sequence(res: u32, n: usize) -> (Renderer, Vec<(Camera, RgbdFrame)>) {
     let scene = Scene::generate(1, &SceneConfig::default());
     let renderer = Renderer::new(&scene);
-    let seed = crate::generate::synthetic_seed_camera(res);
+    let seed = sgam_pipeline::synthetic_seed_camera(res);
     let side = (n as f32).sqrt().ceil() as usize + 1;
     let cells = trajectory::zigzag_cells(side, side);
     let poses = trajectory::grid_poses(&seed.world_from_camera, &cells, 0.408);
@@ -76,7 +76,7 @@ pub fn synthetic_sequence(res: u32, n: usize) -> (Renderer, Vec<(Camera, RgbdFra
 /// `(median, mean, min)` of a non-empty list of timings.
 fn stats(ms: &[f64]) -> (f64, f64, f64) {
     let min = ms.iter().copied().fold(f64::INFINITY, f64::min);
-    (crate::fuse::median(ms), ms.iter().sum::<f64>() / ms.len() as f64, min)
+    (sgam_metrics::median(ms).unwrap_or(0.0), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
 /// The bundled compact model with `sgam generate`'s default sampling (default T over all codes;
@@ -89,7 +89,7 @@ fn compact_refiner() -> Result<sgam_model::VqRefiner> {
         },
         ..Default::default()
     };
-    Ok(sgam_model::VqRefiner::from_bytes(crate::generate::BUNDLED_MODEL, None, options)?)
+    Ok(sgam_model::VqRefiner::from_bytes(sgam_pipeline::BUNDLED_MODEL, None, options)?)
 }
 
 fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Value) {
@@ -134,12 +134,12 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
 }
 
 fn bench_step(args: &BenchArgs) -> Result<()> {
-    use crate::generator::WorldGenerator;
+    use sgam_pipeline::WorldGenerator;
     let refiner = compact_refiner()?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
-    let config = crate::generator::clevr_generator_config(0);
-    let keyframes = crate::keyframes::Keyframes::new(dir.path(), 1.0, 96);
+    let config = sgam_pipeline::clevr_generator_config(0);
+    let keyframes = sgam_pipeline::Keyframes::new(dir.path(), 1.0, 96);
     let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
     let (seed_cam, seed_frame) = &seq[0];
     gen.seed(seed_cam, seed_frame.clone())?;
@@ -152,8 +152,9 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
         all.push(gen.step(&Camera::new(seed_cam.intrinsics, *p))?);
     }
     let timed = &all[warm..];
-    let med =
-        |f: fn(&crate::generator::StepTimings) -> f64| crate::fuse::median(&timed.iter().map(f).collect::<Vec<f64>>());
+    let med = |f: fn(&sgam_pipeline::StepTimings) -> f64| {
+        sgam_metrics::median(&timed.iter().map(f).collect::<Vec<f64>>()).unwrap_or(0.0)
+    };
     let ms: Vec<f64> = timed.iter().map(|t| t.total_ms).collect();
     let split = json!({
         "sources_ms": med(|t| t.sources_ms), "render_ms": med(|t| t.render_ms), "warp_ms": med(|t| t.warp_ms),
@@ -182,7 +183,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     for (c, f) in &seq[..warm] {
         map.integrate(f, c);
     }
-    map.update_mesh(1.0);
+    map.update_mesh();
     let mut ms = Vec::with_capacity(args.iterations);
     // map-step: per-stage times (render, warp, integrate, mesh)
     let mut split: [Vec<f64>; 4] = Default::default();
@@ -207,34 +208,34 @@ pub fn run(args: BenchArgs) -> Result<()> {
             Subject::Mesh => {
                 let s = map.integrate(frame, cam);
                 let t1 = Instant::now();
-                let m = map.update_mesh(1.0);
+                let m = map.update_mesh();
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
                 count(s, m);
                 continue;
             }
             Subject::Render => {
-                std::hint::black_box(map.render_depth(cam));
+                std::hint::black_box(map.remesh_and_rasterize_depth(cam));
             }
             Subject::RayCast => {
                 std::hint::black_box(map.ray_cast(cam));
             }
             Subject::Warp => {
-                let depth = map.render_depth(cam);
+                let depth = map.remesh_and_rasterize_depth(cam);
                 let t1 = Instant::now();
                 std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 ms.push(t1.elapsed().as_secs_f64() * 1e3);
                 map.integrate(frame, cam);
-                map.update_mesh(1.0);
+                map.update_mesh();
                 continue;
             }
             Subject::MapStep => {
-                let depth = map.render_depth(cam);
+                let depth = map.remesh_and_rasterize_depth(cam);
                 let t1 = Instant::now();
                 std::hint::black_box(warp_colour(cam, &depth, &sources, &warp));
                 let t2 = Instant::now();
                 let s = map.integrate(frame, cam);
                 let t3 = Instant::now();
-                let m = map.update_mesh(1.0);
+                let m = map.update_mesh();
                 let t4 = Instant::now();
                 for (stage, (a, b)) in split.iter_mut().zip([(t, t1), (t1, t2), (t2, t3), (t3, t4)]) {
                     stage.push((b - a).as_secs_f64() * 1e3);
@@ -249,14 +250,14 @@ pub fn run(args: BenchArgs) -> Result<()> {
         ms.push(t.elapsed().as_secs_f64() * 1e3);
         if matches!(args.subject, Subject::Render | Subject::RayCast | Subject::Synth) {
             map.integrate(frame, cam);
-            map.update_mesh(1.0);
+            map.update_mesh();
         }
     }
     let subject = format!("{:?}", args.subject).to_lowercase();
     let mut extra = json!({ "blocks": map.block_count() });
     if !split[0].is_empty() {
         for (name, v) in ["render_ms", "warp_ms", "integrate_ms", "mesh_ms"].iter().zip(&split) {
-            extra[*name] = json!(crate::fuse::median(v));
+            extra[*name] = json!(sgam_metrics::median(v).unwrap_or(0.0));
         }
     }
     if counted > 0 {

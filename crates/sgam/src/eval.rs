@@ -82,7 +82,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                     );
                     match crate::generate::model_refiner(kind, &g)? {
                         Some(mut m) => one_step(&a, &mut m)?,
-                        None => one_step(&a, &mut crate::refiners::NullRefiner { fill: true })?,
+                        None => one_step(&a, &mut sgam_pipeline::NullRefiner { fill: true })?,
                     }
                 }
             };
@@ -198,8 +198,8 @@ pub fn one_step<R: sgam_core::Refiner>(args: &OneStepArgs, refiner: &mut R) -> R
     let mut acc = Acc::default();
     let mut times = Vec::new();
     for s in 0..args.scenes {
-        let seed = crate::generate::HELD_OUT_SEED_BASE + s;
-        let mut pairs = crate::pairs::SynthPairs::new(sgam_model::Stage::Two, vec![seed], args.res);
+        let seed = sgam_pipeline::HELD_OUT_SEED_BASE + s;
+        let mut pairs = sgam_pipeline::SynthPairs::new(sgam_model::Stage::Two, vec![seed], args.res);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         for v in 0..args.views {
             let (camera, mut pair) = pairs.sample(args.res, &mut rng);
@@ -238,6 +238,6 @@ pub fn one_step<R: sgam_core::Refiner>(args: &OneStepArgs, refiner: &mut R) -> R
         "psnr_missing": mean(&acc.psnr_missing), "ssim_missing": mean(&acc.ssim_missing),
         "disparity_l1_visible": mean(&acc.disp_l1_visible), "disparity_l1_missing": mean(&acc.disp_l1_missing),
         "missing_fraction": mean(&acc.missing_fraction),
-        "refine_ms_median": crate::fuse::median(&times),
+        "refine_ms_median": sgam_metrics::median(&times).unwrap_or(0.0),
     }))
 }

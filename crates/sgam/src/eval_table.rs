@@ -98,7 +98,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
         eprintln!("== {}", row.name);
         let wa = WorldArgs {
             seeds: a.seeds,
-            first_seed: crate::generate::HELD_OUT_SEED_BASE,
+            first_seed: sgam_pipeline::HELD_OUT_SEED_BASE,
             steps: a.steps,
             trajectory: crate::generate::TrajectoryKind::Zigzag,
             step: None,
@@ -136,7 +136,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
             g.no_refine = row.no_refine;
             match crate::generate::model_refiner(g.refiner, &g)? {
                 Some(mut m) if !row.no_refine => crate::eval::one_step(&os, &mut m)?,
-                _ => crate::eval::one_step(&os, &mut crate::refiners::NullRefiner { fill: !row.no_refine })?,
+                _ => crate::eval::one_step(&os, &mut sgam_pipeline::NullRefiner { fill: !row.no_refine })?,
             }
         };
         let g = &world["generated"];
@@ -160,7 +160,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
             f(&world["loop"]["ssim"], 3),
             f(&world["step_ms_median"], 0),
         ));
-        let label_dir = a.out.join(format!("seed-{}", crate::generate::HELD_OUT_SEED_BASE));
+        let label_dir = a.out.join(format!("seed-{}", sgam_pipeline::HELD_OUT_SEED_BASE));
         let label = if row.refiner == RefinerKind::Oracle { "oracle".to_string() } else { wa_label(&wa) };
         overviews.push(label_dir.join(label).join("overview.png"));
         json_rows.push(serde_json::json!({ "row": row.name, "world": world, "one_step": one }));
@@ -168,8 +168,8 @@ pub fn run(a: &TableArgs) -> Result<()> {
     let mut md = String::new();
     md += &format!(
         "Held-out seeds {}..{}, {}-step zig-zag (one world per seed and refiner, compared with the oracle's world of the same seed); one-step: {} held-out scenes x 4 views.\n\n",
-        crate::generate::HELD_OUT_SEED_BASE,
-        crate::generate::HELD_OUT_SEED_BASE + a.seeds - 1,
+        sgam_pipeline::HELD_OUT_SEED_BASE,
+        sgam_pipeline::HELD_OUT_SEED_BASE + a.seeds - 1,
         a.steps,
         a.one_step_scenes
     );

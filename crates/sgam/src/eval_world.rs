@@ -1,5 +1,6 @@
 //! `sgam eval world` and `sgam eval table`: judge generated worlds against the true world of
-//! the same held-out seed along the same trajectory (DESIGN.md §7, "World level").
+//! the same held-out seed along the same trajectory (world-level statistics, KID, loop
+//! consistency).
 //!
 //! For each held-out seed scene (from 1,000,000; never used in training) the refiner and the
 //! oracle (ground truth of the synthetic world) are unrolled along the same trajectory by the
@@ -27,7 +28,8 @@ use serde_json::json;
 use sgam_core::{TriMesh, Vec2, Vec3};
 use sgam_metrics::world::{Exclusion, WorldStats, WorldStatsConfig};
 
-use crate::generate::{GenerateArgs, RefinerKind, TrajectoryKind, HELD_OUT_SEED_BASE};
+use crate::generate::{GenerateArgs, RefinerKind, TrajectoryKind};
+use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 /// The frozen feature extractor of the image distribution metrics (KID): the compact encoder
 /// as trained in sessions 2-3, kept apart from the bundled refiner so scores stay comparable
@@ -98,7 +100,7 @@ impl WorldArgs {
             _ => {
                 let bytes = match &self.model {
                     Some(p) => std::fs::read(p).unwrap_or_default(),
-                    None => crate::generate::BUNDLED_MODEL.to_vec(),
+                    None => sgam_pipeline::BUNDLED_MODEL.to_vec(),
                 };
                 let stem = match &self.model {
                     Some(p) => {
@@ -182,25 +184,38 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
     if dir.join("run.json").exists() && dir.join("mesh.ply").exists() {
         let run: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("run.json"))?)
             .with_context(|| format!("{}: corrupt run.json", dir.display()))?;
-        // reuse only a world grown the same way
-        let step = args.step.map(|s| serde_json::json!(s)).unwrap_or(serde_json::Value::Null);
-        let mut same = run["steps"].as_u64() == Some(steps as u64)
-            && run["args"]["seed_scene"].as_u64() == Some(seed_scene)
-            && run["args"]["trajectory"] == serde_json::to_value(args.trajectory)?
-            && run["args"]["step"] == step;
-        if kind != RefinerKind::Oracle {
-            same &= run["args"]["no_map"].as_bool() == Some(args.no_map)
-                && run["args"]["no_refine"].as_bool() == Some(args.no_refine)
-                && run["args"]["ground_snap"].as_f64().unwrap_or(0.0) as f32 == args.ground_snap;
+        // reuse only a world grown the same way: the resolved run (seed, trajectory, steps,
+        // ablations, sampling) equal to the one these options give; the model file may differ
+        let mut want = generate_args(args, kind, seed_scene, steps);
+        want.trajectory = args.trajectory;
+        want.step = args.step;
+        let want = crate::generate::resolve(&want)?;
+        let stored: Option<sgam_pipeline::RunConfig> = serde_json::from_value(run["config"].clone()).ok();
+        if stored.is_none() {
+            bail!(
+                "{}: run.json holds no resolved run config (grown by an older sgam); remove the folder or choose another --out",
+                dir.display()
+            );
         }
-        if matches!(kind, RefinerKind::Auto | RefinerKind::Model) && !args.no_refine {
-            same &= run["args"]["temperature"].as_f64().map(|t| t as f32) == Some(args.temperature);
-        }
+        let without_model = |r: &sgam_pipeline::RefinerSpec| match r {
+            sgam_pipeline::RefinerSpec::Model { options, .. } => {
+                sgam_pipeline::RefinerSpec::Model { model: None, options: *options }
+            }
+            other => other.clone(),
+        };
+        let same = run["steps"].as_u64() == Some(steps as u64)
+            && stored.is_some_and(|got| {
+                got.seed == want.seed
+                    && got.trajectory == want.trajectory
+                    && got.no_map == want.no_map
+                    && got.ground_snap_m == want.ground_snap_m
+                    && without_model(&got.refiner) == without_model(&want.refiner)
+            });
         if same {
             return Ok(dir);
         }
         bail!(
-            "{} holds a world grown with other options (steps, trajectory, step, temperature or ablations); \
+            "{} holds a world grown with other options (steps, trajectory, step, temperature, ground prior or ablations); \
              remove it or choose another --out",
             dir.display()
         );
@@ -234,14 +249,14 @@ fn loop_consistency(
     root: &Path,
 ) -> Result<(f64, f64)> {
     let dir = root.join(format!("seed-{seed_scene}")).join(format!("{label}-loop"));
-    let last = dir.join(format!("rgb/{LOOP_STEPS:05}.png"));
+    let last = sgam_pipeline::Keyframes::frame_paths(&dir, LOOP_STEPS).0;
     if !(dir.join("run.json").exists() && last.exists()) {
         if dir.exists() {
             std::fs::remove_dir_all(&dir)
                 .with_context(|| format!("{}: cannot clear an unfinished loop run", dir.display()))?;
         }
         std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
-        let seed = crate::generate::synthetic_seed_camera(256);
+        let seed = sgam_pipeline::synthetic_seed_camera(256);
         let mut poses = sgam_core::trajectory::circle_poses(&seed.world_from_camera, LOOP_STEPS, 3.0);
         poses.push(seed.world_from_camera);
         let traj = root.join(format!("seed-{seed_scene}")).join("loop-kitti.txt");
@@ -257,7 +272,7 @@ fn loop_consistency(
         }
         std::fs::remove_dir_all(dir.join("run")).with_context(|| format!("{}: cannot tidy", dir.display()))?;
     }
-    let first = sgam_io::read_rgb(&dir.join("rgb/00000.png"))?;
+    let first = sgam_io::read_rgb(&sgam_pipeline::Keyframes::frame_paths(&dir, 0).0)?;
     let back = sgam_io::read_rgb(&last)?;
     Ok((
         sgam_metrics::psnr(&back, &first, None).unwrap_or(f64::NAN),
@@ -268,7 +283,7 @@ fn loop_consistency(
 /// The seed frame's footprint on the ground plane: its four corner rays cut with the plane
 /// z = `sgam_synth::GROUND_Z_M`.
 fn seed_footprint(res: u32) -> Vec<Vec2> {
-    let camera = crate::generate::synthetic_seed_camera(res);
+    let camera = sgam_pipeline::synthetic_seed_camera(res);
     let k = camera.intrinsics;
     let (w, h) = (k.width as f32, k.height as f32);
     let corners = [(0.0, 0.0), (w, 0.0), (w, h), (0.0, h)];
@@ -291,7 +306,7 @@ fn seed_footprint(res: u32) -> Vec<Vec2> {
 fn frame_features(dir: &Path, frames: usize, stride: usize, extractor: &FeatureExtractor) -> Result<Vec<Vec<f32>>> {
     let mut out = Vec::new();
     for i in (1..frames).step_by(stride.max(1)) {
-        let (rgb, depth) = crate::keyframes::Keyframes::frame_paths(dir, i);
+        let (rgb, depth) = sgam_pipeline::Keyframes::frame_paths(dir, i);
         let colour = sgam_io::read_rgb(&rgb)?;
         let depth_m = sgam_io::read_npy_f32(&depth)?;
         out.push(extractor.features(&sgam_core::RgbdFrame { colour, depth_m })?);
@@ -505,7 +520,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
             "seed_scene": args.first_seed + i as u64, "generated": r.generated, "oracle": r.oracle,
         })).collect::<Vec<_>>(),
         "loop": { "steps": LOOP_STEPS, "psnr": mean(&loop_psnr), "ssim": mean(&loop_ssim) },
-        "step_ms_median": crate::fuse::median(&step_ms),
+        "step_ms_median": sgam_metrics::median(&step_ms).unwrap_or(0.0),
         "out": root.display().to_string(),
         "wall_s": started.elapsed().as_secs_f64(),
     }))

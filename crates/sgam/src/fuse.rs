@@ -1,6 +1,6 @@
 //! `sgam fuse`: TSDF fusion of a real RGB-D sequence into a coloured mesh.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -98,25 +98,6 @@ pub struct FuseStats {
     pub depth_max_m: f32,
 }
 
-/// Writes a mesh in the format its extension names.
-pub fn write_mesh(path: &Path, mesh: &sgam_core::TriMesh) -> Result<()> {
-    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
-        Some("ply") => sgam_io::write_ply(path, mesh)?,
-        Some("obj") => sgam_io::write_obj(path, mesh)?,
-        Some("glb") => sgam_io::write_glb(path, mesh)?,
-        _ => bail!("{}: unknown mesh format (use .ply, .obj or .glb)", path.display()),
-    }
-    Ok(())
-}
-
-/// Saves a map atomically.
-pub fn save_map(path: &Path, map: &TsdfMap) -> Result<()> {
-    let mut bytes = Vec::new();
-    map.write_to(&mut bytes).with_context(|| format!("{}: serialising the map", path.display()))?;
-    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?;
-    Ok(())
-}
-
 impl FuseArgs {
     /// Checks every option (map parameters in range: the voxel-size floor keeps memory within
     /// the machine) and every output path, before any frame is read. Errors name the option and
@@ -157,6 +138,7 @@ pub fn run(args: FuseArgs) -> Result<()> {
         depth_min_m: args.depth_min,
         depth_max_m: args.depth_max,
         weight_cap: None,
+        weight_threshold: args.weight_threshold,
     };
     config.validate().context("invalid map parameters")?;
     let seq = sgam_io::Sequence::open(&args.sequence)?;
@@ -191,25 +173,25 @@ pub fn run(args: FuseArgs) -> Result<()> {
         integrate_ms.push(t.elapsed().as_secs_f64() * 1e3);
         if args.mesh_every > 0 && (n + 1) % args.mesh_every == 0 {
             let t = Instant::now();
-            map.update_mesh(args.weight_threshold);
+            map.update_mesh();
             mesh_ms += t.elapsed().as_secs_f64() * 1e3;
         }
         pb.inc(1);
     }
     pb.finish_and_clear();
     let t = Instant::now();
-    let mesh = map.extract_mesh(args.weight_threshold);
+    let mesh = map.extract_mesh();
     mesh_ms += t.elapsed().as_secs_f64() * 1e3;
-    write_mesh(&args.out, &mesh)?;
+    sgam_io::write_mesh(&args.out, &mesh)?;
     if let Some(p) = &args.save_map {
-        save_map(p, &map)?;
+        sgam_pipeline::save_map(p, &map)?;
     }
     let frames = range.len();
     let mean_int = integrate_ms.iter().sum::<f64>() / frames as f64;
     let stats = FuseStats {
         frames,
         integrate_ms_per_frame: mean_int,
-        integrate_ms_median: median(&integrate_ms),
+        integrate_ms_median: sgam_metrics::median(&integrate_ms).unwrap_or(0.0),
         mesh_ms_per_frame: mesh_ms / frames as f64,
         integrate_plus_mesh_ms_per_frame: mean_int + mesh_ms / frames as f64,
         io_s,
@@ -235,19 +217,4 @@ pub fn run(args: FuseArgs) -> Result<()> {
         sgam_io::write_atomic(p, |w| std::io::Write::write_all(w, &json))?;
     }
     Ok(())
-}
-
-/// Median of a non-empty list (0 when empty).
-pub fn median(v: &[f64]) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mut s = v.to_vec();
-    s.sort_by(|a, b| a.total_cmp(b));
-    let n = s.len();
-    if n % 2 == 1 {
-        s[n / 2]
-    } else {
-        0.5 * (s[n / 2 - 1] + s[n / 2])
-    }
 }

@@ -29,8 +29,6 @@ pub const POLL_MS: u32 = 1500;
 pub const DEFAULT_EVERY: usize = 10;
 /// Largest share of the run's time that mesh extraction for the live page may take.
 pub const MAX_SHARE: f64 = 0.05;
-/// Mesh weight threshold of the generator (`GeneratorConfig::weight_threshold`).
-const WEIGHT_THRESHOLD: f32 = 1.0;
 
 /// The live view of a growing run, or its stand-in.
 #[derive(Debug)]
@@ -154,7 +152,7 @@ impl LiveView {
             return;
         }
         let t = Instant::now();
-        let mesh = map.extract_mesh(WEIGHT_THRESHOLD);
+        let mesh = map.extract_mesh();
         live.last_extract = Some((t, t.elapsed()));
         live.extract_ms.push(t.elapsed().as_secs_f64() * 1000.0);
         live.version += 1;
@@ -251,12 +249,12 @@ mod tests {
         let page = String::from_utf8(page).unwrap();
         assert!(page.contains("\"live\":{\"state\":\"live.json\""));
         // a tiny world: a plane seen by one camera, integrated into the map
-        let cam = crate::generate::synthetic_seed_camera(32);
+        let cam = sgam_pipeline::synthetic_seed_camera(32);
         let renderer = sgam_synth::Renderer::new(&sgam_synth::Scene::generate(1, &Default::default()));
         let frame = renderer.render(&cam, &Default::default()).frame;
         let mut map = TsdfMap::new(TsdfConfig { voxel_size_m: 0.2, trunc_voxels: 4.0, ..TsdfConfig::default() });
         map.integrate(&frame, &cam);
-        map.update_mesh(WEIGHT_THRESHOLD);
+        map.update_mesh();
         let cams = vec![cam; 3];
         live.after_step(1, 3, &mut map, &cams[..2]);
         // the worker publishes within a moment

@@ -1,25 +1,21 @@
 //! `sgam`: grow a large, consistent, textured 3D world from one RGB-D image (SGAM, NeurIPS 2022).
 //!
-//! The binary holds the CLI and the pipeline orchestrator; every algorithm lives in the library
-//! crates (`sgam-map`, `sgam-synth`, `sgam-model`, `sgam-metrics`, `sgam-io`).
+//! The binary holds the CLI: argument parsing, progress display and output formatting. The loop
+//! lives in `sgam-pipeline`, every algorithm in the library crates (`sgam-map`, `sgam-synth`,
+//! `sgam-model`, `sgam-metrics`, `sgam-io`).
 
 mod bench;
-mod codepairs;
 mod convert;
 mod eval;
 mod eval_table;
 mod eval_world;
 mod fuse;
 mod generate;
-mod generator;
-mod greedy;
 mod guard;
-mod keyframes;
 mod live;
+mod outputs;
 mod overview;
-mod pairs;
 mod progress;
-mod refiners;
 mod serve;
 mod synth;
 mod train;

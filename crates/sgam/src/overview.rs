@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use sgam_core::{Camera, Image, Intrinsics, Rigid3, TriMesh, Vec2, Vec3};
 use sgam_map::TsdfMap;
 
-use crate::keyframes::Keyframes;
+use sgam_pipeline::Keyframes;
 
 /// Horizontal field of view of the overview camera.
 const OVERVIEW_FOV_X_RAD: f32 = 1.2;

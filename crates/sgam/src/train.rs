@@ -9,12 +9,12 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Image, RgbdFrame};
 use sgam_model::train::ValidationImage;
-use sgam_model::{ModelConfig, PairSource, Stage, TrainConfig, TrainPair};
+use sgam_model::{ModelConfig, Stage, TrainConfig, TrainPair};
 
-use crate::generate::HELD_OUT_SEED_BASE;
 use crate::guard::{in_range, positive, RunLock};
-use crate::pairs::SynthPairs;
 use crate::progress;
+use sgam_pipeline::SynthPairs;
+use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 /// Model architecture presets.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -400,13 +400,10 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         }
     };
     let summary =
-        sgam_model::train(&args.run, &model_config, &cfg, &mut source as &mut dyn PairSource, &val, &mut on_step)
-            .map_err(|e| match e {
-                sgam_model::train::TrainError::ResumeMismatch { run, differences } => {
-                    resume_mismatch(&run, &differences)
-                }
-                other => anyhow::Error::new(other),
-            })?;
+        sgam_model::train(&args.run, &model_config, &cfg, &mut source, &val, &mut on_step).map_err(|e| match e {
+            sgam_model::train::TrainError::ResumeMismatch { run, differences } => resume_mismatch(&run, &differences),
+            other => anyhow::Error::new(other),
+        })?;
     pb.finish_and_clear();
     eprintln!(
         "trained to step {} ({:.2} images/s); weights: {}",

@@ -9,9 +9,9 @@ use sgam_model::generative::{CodeTrainConfig, CodeTrainer};
 use sgam_model::params::from_safetensors_bytes;
 
 use crate::eval_world::FEATURE_MODEL;
-use crate::generate::HELD_OUT_SEED_BASE;
 use crate::progress;
 use crate::train::SamplerArgs;
+use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 fn validate(a: &SamplerArgs) -> Result<()> {
     if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
@@ -135,7 +135,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     // recorded once per run folder and cached there (RUN/pairs-*.bin), so a restart or a resume
     // trains at once
     let record = |n: usize, stream: u64, what: &str| -> Result<Vec<_>> {
-        let key = crate::codepairs::CacheKey {
+        let key = sgam_pipeline::codepairs::CacheKey {
             version: 1,
             pairs: n,
             steps_per_run: a.steps_per_run,
@@ -146,7 +146,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         };
         let path = a.run.join(format!("pairs-{stream}.bin"));
         if path.exists() {
-            match crate::codepairs::read_cache(&path, &key)? {
+            match sgam_pipeline::codepairs::read_cache(&path, &key)? {
                 Some(p) => return Ok(p),
                 // a run keeps its pairs: resuming on others would silently change the data
                 None if resuming => bail!(
@@ -160,7 +160,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
         rng.set_stream(stream);
         let pb = progress::bar(n as u64, what);
-        let pairs = crate::codepairs::collect(
+        let pairs = sgam_pipeline::codepairs::collect(
             n,
             a.steps_per_run,
             a.crop,
@@ -170,7 +170,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             &mut |k| pb.set_position(k as u64),
         )?;
         pb.finish_and_clear();
-        crate::codepairs::write_cache(&path, &key, &pairs)?;
+        sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
         Ok(pairs)
     };
     let started = std::time::Instant::now();

@@ -17,7 +17,7 @@ use openh264::{OpenH264API, Timestamp};
 use sgam_core::{Camera, Image, Intrinsics, Rigid3, TriMesh, Vec3};
 use sgam_map::TsdfMap;
 
-use crate::keyframes::Keyframes;
+use sgam_pipeline::Keyframes;
 
 /// Frame rate of `flythrough.mp4`, frames/s (one generated frame per video frame).
 pub const FLYTHROUGH_FPS: u32 = 15;
@@ -247,7 +247,7 @@ pub fn write_run_orbit_mp4(dir: &Path, up: Vec3) -> Result<VideoInfo> {
     let bytes = std::fs::read(&path).with_context(|| format!("{}: cannot read the map", path.display()))?;
     let mut map = TsdfMap::read_from(&mut &bytes[..]).with_context(|| format!("{}: not a map", path.display()))?;
     drop(bytes);
-    let mesh = map.extract_mesh(1.0);
+    let mesh = map.extract_mesh();
     write_orbit_mp4(&dir.join("orbit.mp4"), &map, &mesh, up)
 }
 

@@ -452,7 +452,7 @@ impl LiveState {
             finished: false,
             up_world: cameras.first().map(up_world).unwrap_or(Vec3::Z).to_array(),
             poses: cameras.iter().map(pose_rows).collect(),
-            frames: (0..cameras.len()).map(|i| format!("rgb/{i:05}.png")).collect(),
+            frames: (0..cameras.len()).map(|i| sgam_pipeline::frame_file_names(i).0).collect(),
             mesh: None,
         }
     }
@@ -492,7 +492,7 @@ mod tests {
 
     #[test]
     fn up_is_z_for_synthetic_seeds_and_image_up_for_rgb_seeds() {
-        let synthetic = crate::generate::synthetic_seed_camera(32);
+        let synthetic = sgam_pipeline::synthetic_seed_camera(32);
         assert_eq!(up_world(&synthetic), Vec3::Z);
         let rgb_seed = Camera::new(Intrinsics::from_fov_x(32, 32, 1.0), Rigid3::IDENTITY);
         assert_eq!(up_world(&rgb_seed), Vec3::NEG_Y);

@@ -1,4 +1,4 @@
-//! The bad-input suite (issue 18), by class: corrupt files per format, bad options per kind,
+//! The bad-input suite, by class: corrupt files per format, bad options per kind,
 //! interrupted writes, concurrent runs, resume mismatches, non-finite weights. Every failing case
 //! asserts a non-zero exit code (not a signal), no "panicked at" in stderr, and a message that
 //! names the option or the file. Sizes are tiny (32 px worlds, the tiny model) so the suite

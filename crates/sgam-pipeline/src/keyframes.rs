@@ -9,8 +9,9 @@ use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::{Context, Result};
 use sgam_core::{Camera, Image, RgbdFrame};
+
+use crate::{PipelineError, Result};
 
 /// Quantises colour to 8 bits (what a saved PNG holds), so in-memory keyframes equal the ones
 /// read back from disk after a resume.
@@ -18,6 +19,13 @@ pub fn quantise_colour(image: &mut Image<[f32; 3]>) {
     for p in &mut image.data {
         *p = p.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() / 255.0);
     }
+}
+
+/// Names of frame `index`'s colour PNG and depth NPY relative to the run folder
+/// (`rgb/NNNNN.png`, `depth/NNNNN.npy`): the one place the run folder's frame layout is spelled
+/// (`transforms.json` lists these names).
+pub fn frame_file_names(index: usize) -> (String, String) {
+    (format!("rgb/{index:05}.png"), format!("depth/{index:05}.npy"))
 }
 
 /// Keyframe index + paging cache.
@@ -47,14 +55,20 @@ impl Keyframes {
         }
     }
 
-    /// Paths of frame `index`'s colour PNG and depth NPY.
+    /// Paths of frame `index`'s colour PNG and depth NPY under the run folder `root`.
     pub fn frame_paths(root: &Path, index: usize) -> (PathBuf, PathBuf) {
-        (root.join("rgb").join(format!("{index:05}.png")), root.join("depth").join(format!("{index:05}.npy")))
+        let (rgb, depth) = frame_file_names(index);
+        (root.join(rgb), root.join(depth))
     }
 
     /// Number of keyframes.
     pub fn len(&self) -> usize {
         self.cameras.len()
+    }
+
+    /// Whether there is no keyframe yet (before the seed).
+    pub fn is_empty(&self) -> bool {
+        self.cameras.is_empty()
     }
 
     /// Cameras of all keyframes, in step order.
@@ -121,7 +135,8 @@ impl Keyframes {
         let (rgb, depth) = Self::frame_paths(&self.root, index);
         let colour = sgam_io::read_rgb(&rgb)?;
         let depth_m = sgam_io::read_npy_f32(&depth)?;
-        let frame = Arc::new(RgbdFrame::try_new(colour, depth_m).with_context(|| format!("keyframe {index}"))?);
+        let frame =
+            Arc::new(RgbdFrame::try_new(colour, depth_m).map_err(|source| PipelineError::Keyframe { index, source })?);
         self.insert_cache(index, frame.clone());
         Ok(frame)
     }

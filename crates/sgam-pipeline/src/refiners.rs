@@ -1,4 +1,5 @@
-//! Stand-in refiners: the pipeline runs end to end without weights.
+//! The refiners of a run: the learned model, and stand-ins so the pipeline runs end to end
+//! without weights. [`build_refiner`] is the one place a [`RefinerSpec`] becomes a refiner.
 //!
 //! - [`NullRefiner`]: returns the guidance with holes filled naively (push-pull: missing pixels
 //!   take the average of valid pixels at coarser scales). With `fill = false` it returns the
@@ -7,9 +8,116 @@
 //!   camera (an upper bound for any model; used by end-to-end tests).
 
 use std::convert::Infallible;
+use std::path::{Path, PathBuf};
 
+use serde::{Deserialize, Serialize};
 use sgam_core::{is_valid_depth, Guidance, Refiner, RgbdFrame};
+use sgam_model::{ModelError, RefinerOptions, Sampling, VqRefiner};
 use sgam_synth::{RenderConfig, Renderer};
+
+use crate::error::config_error;
+use crate::{PipelineError, Result, Seed};
+
+/// The bundled compact model (f16 safetensors, config embedded; see docs/MODEL.md), compiled
+/// into the library so an installed `sgam` needs no files next to it.
+pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/compact.safetensors");
+
+/// Which refiner completes the guidance, resolved.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum RefinerSpec {
+    /// The learned VQ refiner: the weights at `model`, else [`BUNDLED_MODEL`].
+    Model {
+        /// Model weights (safetensors); `None` = the bundled model.
+        model: Option<PathBuf>,
+        /// Sampling, seed and what to keep from the guidance.
+        options: RefinerOptions,
+    },
+    /// [`NullRefiner`]: holes filled by push-pull (`fill`), or the guidance as it is.
+    Null {
+        /// Fill missing pixels; `false` is the `--no-refine` ablation.
+        fill: bool,
+    },
+    /// [`OracleRefiner`]: ground truth of the synthetic world (synthetic seeds only).
+    Oracle,
+}
+
+impl RefinerSpec {
+    /// CRC-32 of the model file the refiner loads (`None` for the stand-ins): a resumed run
+    /// refuses a file that changed since it started.
+    pub fn model_crc32(&self) -> Result<Option<u32>> {
+        Ok(match self {
+            RefinerSpec::Model { model: Some(p), .. } => Some(crc32fast::hash(
+                &std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?,
+            )),
+            RefinerSpec::Model { model: None, .. } => Some(crc32fast::hash(BUNDLED_MODEL)),
+            RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,
+        })
+    }
+}
+
+/// The code selection for a sampling temperature and a top-k (0 = all codes): temperature
+/// sampling when both allow a choice, argmin otherwise.
+pub fn sampling(temperature: f32, top_k: usize) -> Sampling {
+    let top_k = if top_k == 0 { usize::MAX } else { top_k };
+    if temperature > 0.0 && top_k > 1 {
+        Sampling::Temperature { temperature, top_k }
+    } else {
+        Sampling::Argmin
+    }
+}
+
+/// The learned refiner with the weights at `model` (the bundled model when `None`).
+pub fn model_refiner(model: Option<&Path>, options: RefinerOptions) -> Result<VqRefiner> {
+    match model {
+        Some(path) => VqRefiner::from_files(path, None, options)
+            .map_err(|source| PipelineError::ModelLoad { path: Some(path.to_path_buf()), source }),
+        None => VqRefiner::from_bytes(BUNDLED_MODEL, None, options)
+            .map_err(|source| PipelineError::ModelLoad { path: None, source }),
+    }
+}
+
+/// The refiner factory: the refiner `spec` names, for a run from `seed` (the oracle renders
+/// the seed's synthetic world).
+pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
+    Ok(match spec {
+        RefinerSpec::Model { model, options } => {
+            AnyRefiner::Model(Box::new(model_refiner(model.as_deref(), *options)?))
+        }
+        RefinerSpec::Null { fill } => AnyRefiner::Null(NullRefiner { fill: *fill }),
+        RefinerSpec::Oracle => {
+            let Some(renderer) = seed.renderer.clone() else {
+                config_error!(
+                    "--refiner oracle needs a synthetic seed (no --seed-rgb / --seed-template / --seed-google-earth)"
+                );
+            };
+            AnyRefiner::Oracle(Box::new(OracleRefiner::new(renderer, RenderConfig::default())))
+        }
+    })
+}
+
+/// One of the refiners [`build_refiner`] makes.
+#[derive(Debug)]
+pub enum AnyRefiner {
+    /// The learned VQ refiner.
+    Model(Box<VqRefiner>),
+    /// Push-pull hole filling, or pass-through.
+    Null(NullRefiner),
+    /// Ground truth of the synthetic world.
+    Oracle(Box<OracleRefiner>),
+}
+
+impl Refiner for AnyRefiner {
+    type Error = ModelError;
+
+    fn refine(&mut self, guidance: &Guidance) -> std::result::Result<RgbdFrame, ModelError> {
+        match self {
+            AnyRefiner::Model(r) => r.refine(guidance),
+            AnyRefiner::Null(r) => r.refine(guidance).map_err(|e| match e {}),
+            AnyRefiner::Oracle(r) => r.refine(guidance).map_err(|e| match e {}),
+        }
+    }
+}
 
 /// Guidance with holes filled by push-pull interpolation (or not at all).
 #[derive(Debug, Clone, Copy)]
@@ -21,7 +129,7 @@ pub struct NullRefiner {
 impl Refiner for NullRefiner {
     type Error = Infallible;
 
-    fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, Infallible> {
+    fn refine(&mut self, guidance: &Guidance) -> std::result::Result<RgbdFrame, Infallible> {
         let mut frame = guidance.frame.clone();
         if self.fill {
             push_pull_fill(&mut frame, &guidance.missing);
@@ -122,7 +230,7 @@ impl OracleRefiner {
 impl Refiner for OracleRefiner {
     type Error = Infallible;
 
-    fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, Infallible> {
+    fn refine(&mut self, guidance: &Guidance) -> std::result::Result<RgbdFrame, Infallible> {
         Ok(self.renderer.render(&guidance.camera, &self.config).frame)
     }
 }

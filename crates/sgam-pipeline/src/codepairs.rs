@@ -14,7 +14,6 @@
 
 use std::sync::{Arc, Mutex};
 
-use anyhow::{Context, Result};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{trajectory, Camera, Guidance, Image, Intrinsics, Refiner, RgbdFrame, Vec3};
@@ -25,6 +24,7 @@ use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Sce
 
 use crate::generator::{clevr_generator_config, WorldGenerator};
 use crate::keyframes::Keyframes;
+use crate::{PipelineError, Result};
 
 /// One recorded generation step: guidance and the oracle's answer.
 struct Recorded {
@@ -83,7 +83,7 @@ fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> 
         Shape::Line(step) => trajectory::line_poses(s, steps + 1, step),
         Shape::Spiral(step) => trajectory::spiral_poses(s, steps + 1, step, 4.0),
     };
-    let dir = tempfile::tempdir().context("creating a temporary keyframe folder")?;
+    let dir = tempfile::tempdir().map_err(|e| sgam_io::IoError::Io { path: std::env::temp_dir(), source: e })?;
     let config = clevr_generator_config(scene_seed);
     let log = Arc::new(Mutex::new(Vec::new()));
     let oracle = RecordingOracle { renderer: renderer.clone(), log: log.clone() };
@@ -95,7 +95,8 @@ fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> 
         gen.step(&Camera::new(seed_camera.intrinsics, *pose))?;
     }
     drop(gen);
-    let recorded = std::mem::take(&mut *log.lock().map_err(|_| anyhow::anyhow!("recording lock poisoned"))?);
+    // the oracle never panics while holding the lock; a poisoned lock still holds whole records
+    let recorded = std::mem::take(&mut *log.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
     Ok(recorded)
 }
 
@@ -199,7 +200,8 @@ const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
 pub fn write_cache(path: &std::path::Path, key: &CacheKey, pairs: &[CodePair]) -> Result<()> {
     let mut b: Vec<u8> = Vec::new();
     b.extend_from_slice(CACHE_MAGIC);
-    let json = serde_json::to_vec(key)?;
+    let json =
+        serde_json::to_vec(key).map_err(|e| PipelineError::Corrupt { path: path.to_path_buf(), msg: e.to_string() })?;
     b.extend_from_slice(&(json.len() as u64).to_le_bytes());
     b.extend_from_slice(&json);
     b.extend_from_slice(&(pairs.len() as u64).to_le_bytes());
@@ -225,8 +227,8 @@ pub fn write_cache(path: &std::path::Path, key: &CacheKey, pairs: &[CodePair]) -
 
 /// Reads a cache written by [`write_cache`]; `Ok(None)` when it was recorded with another key.
 pub fn read_cache(path: &std::path::Path, key: &CacheKey) -> Result<Option<Vec<CodePair>>> {
-    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let bad = |what: &str| anyhow::anyhow!("{}: {what}", path.display());
+    let bytes = std::fs::read(path).map_err(|e| sgam_io::IoError::Io { path: path.to_path_buf(), source: e })?;
+    let bad = |what: &str| PipelineError::Corrupt { path: path.to_path_buf(), msg: what.to_string() };
     if bytes.len() < 20 || &bytes[..8] != CACHE_MAGIC {
         return Err(bad("not a pair cache"));
     }
@@ -315,9 +317,9 @@ mod tests {
         }
         for (c, f) in &frames {
             let mut f = f.clone();
-            crate::keyframes::quantise_colour(&mut f.colour);
+            crate::quantise_colour(&mut f.colour);
             map.integrate(&f, c);
-            map.update_mesh(config.weight_threshold);
+            map.update_mesh();
         }
         let target = &recorded[3].guidance;
         // sources: the nearest 5 within 1 m of the target, nearest first (the keyframe rule)
@@ -332,7 +334,7 @@ mod tests {
             .iter()
             .map(|(c, f)| {
                 let mut f = f.clone();
-                crate::keyframes::quantise_colour(&mut f.colour);
+                crate::quantise_colour(&mut f.colour);
                 (*c, f)
             })
             .collect();
@@ -341,7 +343,7 @@ mod tests {
             .take(config.k_sources)
             .map(|(_, i)| SourceView { camera: &quantised[*i].0, frame: &quantised[*i].1 })
             .collect();
-        let (g, _) = crate::generator::render_guidance(&mut map, &target.camera, &views, &config.warp, target.seed);
+        let (g, _) = crate::render_guidance(&mut map, &target.camera, &views, &config.warp, target.seed);
         assert_eq!(g.missing, target.missing);
         assert_eq!(g.frame, target.frame);
         assert!(target.missing.iter().any(|m| !m), "the guidance shows the map");

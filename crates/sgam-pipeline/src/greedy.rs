@@ -12,9 +12,12 @@
 
 use std::collections::HashSet;
 
-use anyhow::{bail, Result};
-use sgam_core::{Camera, Intrinsics, Rigid3, Vec3};
+use sgam_core::{Camera, Intrinsics, Rigid3};
 use sgam_map::TsdfMap;
+
+use crate::error::config_error;
+use crate::poses::PoseSource;
+use crate::Result;
 
 /// Width of the coverage renders.
 const SCORE_WIDTH: u32 = 64;
@@ -35,7 +38,7 @@ impl GreedyPlanner {
     /// the poses generated so far (seed first), used to restore the visited set on resume.
     pub fn new(seed: &Camera, step_m: f32, side: usize, done: &[Camera]) -> Result<Self> {
         if !(step_m.is_finite() && step_m > 0.0) {
-            bail!("--step {step_m} must be a positive distance in metres");
+            config_error!("--step {step_m} must be a positive distance in metres");
         }
         let mut p = Self {
             seed: seed.world_from_camera,
@@ -60,10 +63,7 @@ impl GreedyPlanner {
     }
 
     fn pose_of(&self, (i, j): (i32, i32)) -> Rigid3 {
-        Rigid3::new(
-            self.seed.rotation,
-            self.seed.translation + Vec3::new(i as f32 * self.step_m, j as f32 * self.step_m, 0.0),
-        )
+        sgam_core::trajectory::grid_pose(&self.seed, i, j, self.step_m)
     }
 
     fn in_grid(&self, (i, j): (i32, i32)) -> bool {
@@ -85,7 +85,7 @@ impl GreedyPlanner {
         let k = &self.intrinsics;
         let h = ((SCORE_WIDTH as f32 * k.height as f32 / k.width.max(1) as f32).round() as u32).max(1);
         let cam = Camera::new(k.resized(SCORE_WIDTH, h), self.pose_of(cell));
-        let r = map.render(&cam);
+        let r = map.remesh_and_rasterize(&cam);
         r.covered.iter().zip(&r.back_facing).filter(|(c, b)| **c && !**b).count()
     }
 
@@ -126,6 +126,12 @@ impl GreedyPlanner {
         frontier.dedup();
         let (ci, cj) = self.current;
         frontier.into_iter().min_by_key(|&(i, j)| ((i - ci).pow(2) + (j - cj).pow(2), i, j))
+    }
+}
+
+impl PoseSource for GreedyPlanner {
+    fn next_camera(&mut self, map: &mut TsdfMap) -> Option<Camera> {
+        self.next(map)
     }
 }
 

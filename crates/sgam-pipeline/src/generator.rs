@@ -2,13 +2,13 @@
 
 use std::time::Instant;
 
-use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
 use crate::keyframes::{quantise_colour, Keyframes};
+use crate::{PipelineError, Result};
 
 /// Parameters of the loop (everything but the refiner and the trajectory).
 #[derive(Debug, Clone)]
@@ -21,8 +21,6 @@ pub struct GeneratorConfig {
     pub k_sources: usize,
     /// Sources must lie within this distance of the target camera, metres (authors: 1.0 / 0.3).
     pub source_radius_m: f32,
-    /// Marching-cubes weight threshold.
-    pub weight_threshold: f32,
     /// Ablation (InfiniteNature-style): no global map; the guidance comes from the previous
     /// frame only.
     pub no_map: bool,
@@ -34,8 +32,7 @@ pub struct GeneratorConfig {
     pub ground_snap_m: Option<f32>,
 }
 
-/// The loop's parameters for the CLEVR-Infinite world (the authors' values, DESIGN.md §4 and
-/// §6): 5 cm voxels, truncation 10 voxels, depth 0.05-20 m, colour from the nearest source
+/// The loop's parameters for the CLEVR-Infinite world (the SGAM authors' values): 5 cm voxels, truncation 10 voxels, depth 0.05-20 m, colour from the nearest source
 /// camera that passes the geometry check, the nearest 5 sources within 1 m, weight threshold 1.
 /// Generation (`sgam generate`, whose options override fields of it) and the generative
 /// stage-2 training pairs ([`crate::codepairs`]) both start from this one value.
@@ -47,11 +44,11 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
             depth_min_m: 0.05,
             depth_max_m: 20.0,
             weight_cap: None,
+            weight_threshold: 1.0,
         },
         warp: WarpConfig { selection: SourceSelection::NearestCamera, ..WarpConfig::default() },
         k_sources: 5,
         source_radius_m: 1.0,
-        weight_threshold: 1.0,
         no_map: false,
         seed,
         ground_snap_m: None,
@@ -71,7 +68,7 @@ pub fn render_guidance(
     seed: u64,
 ) -> (Guidance, f64) {
     let t = Instant::now();
-    let depth_m = map.render_depth(camera);
+    let depth_m = map.remesh_and_rasterize_depth(camera);
     let render_ms = t.elapsed().as_secs_f64() * 1e3;
     let warped = warp_colour(camera, &depth_m, sources, warp);
     let guidance = Guidance {
@@ -168,7 +165,7 @@ impl<R: Refiner> WorldGenerator<R> {
     pub fn seed(&mut self, camera: &Camera, mut frame: RgbdFrame) -> Result<()> {
         quantise_colour(&mut frame.colour);
         self.map.integrate(&frame, camera);
-        self.map.update_mesh(self.config.weight_threshold);
+        self.map.update_mesh();
         self.keyframes.push(*camera, frame)?;
         Ok(())
     }
@@ -189,7 +186,7 @@ impl<R: Refiner> WorldGenerator<R> {
         timings.warp_ms = t.lap() - render_ms;
         timings.missing_fraction = guidance.missing_fraction();
         // complete the incomplete RGB-D image in one shot
-        let mut frame = self.refiner.refine(&guidance).map_err(anyhow::Error::new).context("refiner failed")?;
+        let mut frame = self.refiner.refine(&guidance).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         quantise_colour(&mut frame.colour);
         if let Some(tolerance_m) = self.config.ground_snap_m {
             if let Some(plane) = self.ground_plane()? {
@@ -202,7 +199,7 @@ impl<R: Refiner> WorldGenerator<R> {
         self.map.integrate(&frame, camera);
         timings.integrate_ms = t.lap();
         // re-mesh only the blocks the frame changed
-        self.map.update_mesh(self.config.weight_threshold);
+        self.map.update_mesh();
         timings.mesh_ms = t.lap();
         // keep it as a keyframe (written to the run folder)
         self.keyframes.push(*camera, frame)?;

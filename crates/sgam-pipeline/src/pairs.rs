@@ -13,7 +13,6 @@
 
 use std::sync::Arc;
 
-use anyhow::Result;
 use rand::seq::SliceRandom;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -121,7 +120,7 @@ impl SynthPairs {
             }
         }
         offsets.sort_by_key(|(di, dj)| di * di + dj * dj);
-        let config = crate::generator::clevr_generator_config(0);
+        let config = crate::clevr_generator_config(0);
         let mut map = TsdfMap::new(config.tsdf);
         let views: Vec<(Camera, RgbdFrame)> = offsets
             .iter()
@@ -135,10 +134,10 @@ impl SynthPairs {
         for (cam, f) in &views {
             map.integrate(f, cam);
         }
-        map.update_mesh(config.weight_threshold);
+        map.update_mesh();
         let sources: Vec<SourceView<'_>> =
             views.iter().take(self.k_sources).map(|(c, f)| SourceView { camera: c, frame: f }).collect();
-        let (guidance, _) = crate::generator::render_guidance(&mut map, &crop_cam, &sources, &config.warp, 0);
+        let (guidance, _) = crate::render_guidance(&mut map, &crop_cam, &sources, &config.warp, 0);
         let mut input = guidance.frame;
         for (i, m) in guidance.missing.iter().enumerate() {
             if *m {
@@ -151,7 +150,9 @@ impl SynthPairs {
 }
 
 impl PairSource for SynthPairs {
-    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>> {
+    type Error = std::convert::Infallible;
+
+    fn next_batch(&mut self, batch: usize, crop: u32, rng: &mut ChaCha8Rng) -> Result<Vec<TrainPair>, Self::Error> {
         Ok((0..batch).map(|_| self.pair(crop, rng)).collect())
     }
 }

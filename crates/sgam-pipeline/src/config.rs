@@ -1,0 +1,156 @@
+//! The resolved configuration of a generation run: what a snapshot stores and a resumed run
+//! continues with. Every default is applied and every length is in metres, so the run does not
+//! depend on how the command line spelled it.
+
+use serde::{Deserialize, Serialize};
+use sgam_map::TsdfConfig;
+
+use crate::error::config_error;
+use crate::generator::{clevr_generator_config, GeneratorConfig};
+use crate::{RefinerSpec, Result, SeedSpec, TrajectorySpec};
+
+/// Version of [`RunConfig`]'s layout (a snapshot of another version is refused on resume).
+pub const RUN_CONFIG_VERSION: u32 = 1;
+/// Largest image side of a run (keyframe cache and model activations stay within a few GB).
+pub const MAX_RES: u32 = 2048;
+/// Most generation steps of one run.
+pub const MAX_STEPS: usize = 1_000_000;
+/// Largest grid side of the grid trajectories.
+pub const MAX_GRID: usize = 1000;
+
+/// The map's parameters of a run (see [`TsdfConfig`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MapSettings {
+    /// Voxel edge, metres.
+    pub voxel_size_m: f32,
+    /// Truncation, voxels.
+    pub trunc_voxels: f32,
+    /// Depth range used for integration and rendering, metres.
+    pub depth_min_m: f32,
+    /// Depth range used for integration and rendering, metres.
+    pub depth_max_m: f32,
+    /// Cap on the per-voxel weight.
+    pub weight_cap: Option<f32>,
+    /// Marching-cubes weight threshold (what meshing and the guidance render use).
+    pub weight_threshold: f32,
+}
+
+impl MapSettings {
+    /// The map's configuration.
+    pub fn tsdf(&self) -> TsdfConfig {
+        TsdfConfig {
+            voxel_size_m: self.voxel_size_m,
+            trunc_voxels: self.trunc_voxels,
+            depth_min_m: self.depth_min_m,
+            depth_max_m: self.depth_max_m,
+            weight_cap: self.weight_cap,
+            weight_threshold: self.weight_threshold,
+        }
+    }
+}
+
+/// What a run writes besides the frames (the pipeline writes snapshots; the caller the rest).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct OutputSettings {
+    /// Snapshot every N steps (and after the seed and the last step).
+    pub snapshot_every: usize,
+    /// Also write the world mesh every N steps (0 = only at the end).
+    pub mesh_every: usize,
+    /// Also write 16-bit PNG depth in millimetres.
+    pub depth_png: bool,
+    /// Write the fly-through GIF (and the MP4 unless `mp4` is false).
+    pub video: bool,
+    /// Write flythrough.mp4 (with `video`).
+    pub mp4: bool,
+    /// Write orbit.mp4.
+    pub orbit_video: bool,
+}
+
+/// A generation run, resolved.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunConfig {
+    /// [`RUN_CONFIG_VERSION`] when written.
+    pub version: u32,
+    /// The seed frame.
+    pub seed: SeedSpec,
+    /// The camera path.
+    pub trajectory: TrajectorySpec,
+    /// Generation steps (poses after the seed).
+    pub steps: usize,
+    /// The refiner.
+    pub refiner: RefinerSpec,
+    /// The map.
+    pub map: MapSettings,
+    /// Source keyframes per step.
+    pub k_sources: usize,
+    /// Sources must lie within this distance, metres.
+    pub source_radius_m: f32,
+    /// Ablation: no global map; guidance from the previous frame only.
+    pub no_map: bool,
+    /// Run seed; each step's refiner seed derives from it and the step index.
+    pub run_seed: u64,
+    /// Outputs.
+    pub outputs: OutputSettings,
+    /// Ground prior: invented ground-like pixels less than this above the seed frame's ground
+    /// plane are put on it, metres ([`GeneratorConfig::ground_snap_m`]); `None` = off.
+    #[serde(default)]
+    pub ground_snap_m: Option<f32>,
+}
+
+impl RunConfig {
+    /// The generator's parameters: the CLEVR loop ([`clevr_generator_config`]) with this run's
+    /// map, sources and ablation.
+    pub fn generator_config(&self) -> GeneratorConfig {
+        GeneratorConfig {
+            tsdf: self.map.tsdf(),
+            k_sources: self.k_sources,
+            source_radius_m: self.source_radius_m,
+            no_map: self.no_map,
+            ground_snap_m: self.ground_snap_m,
+            ..clevr_generator_config(self.run_seed)
+        }
+    }
+
+    /// Checks a configuration read back from a snapshot: its version, counts within bounds, a
+    /// valid map.
+    pub fn validate(&self) -> Result<()> {
+        if self.version != RUN_CONFIG_VERSION {
+            config_error!("run config version {} (this build reads {RUN_CONFIG_VERSION})", self.version);
+        }
+        if !(1..=MAX_STEPS).contains(&self.steps) {
+            config_error!("{} steps (accepted 1..={MAX_STEPS})", self.steps);
+        }
+        if !(1..=MAX_STEPS).contains(&self.outputs.snapshot_every) || self.outputs.mesh_every > MAX_STEPS {
+            config_error!("snapshot / mesh interval out of range");
+        }
+        if !(1..=64).contains(&self.k_sources) || !(f32::MIN_POSITIVE..=1000.0).contains(&self.source_radius_m) {
+            config_error!(
+                "sources: {} within {} m (accepted 1..=64 within (0, 1000] m)",
+                self.k_sources,
+                self.source_radius_m
+            );
+        }
+        if let SeedSpec::Synthetic { res, .. } = self.seed {
+            if !(16..=MAX_RES).contains(&res) {
+                config_error!("synthetic seed of {res} px (accepted 16..={MAX_RES})");
+            }
+        }
+        match self.trajectory {
+            TrajectorySpec::Zigzag { side, .. }
+            | TrajectorySpec::Boustrophedon { side, .. }
+            | TrajectorySpec::Greedy { side, .. }
+                if !(1..=MAX_GRID.max(1 + MAX_STEPS.isqrt())).contains(&side) =>
+            {
+                config_error!("grid side {side} out of range")
+            }
+            _ => {}
+        }
+        if let Some(m) = self.ground_snap_m {
+            if !(m > 0.0 && m <= 10.0) {
+                config_error!("ground prior tolerance {m} m (accepted (0, 10] m)");
+            }
+        }
+        self.map.tsdf().validate()?;
+        Ok(())
+    }
+}

@@ -1,0 +1,140 @@
+//! A whole generation run: seed, then one [`WorldGenerator::step`] per pose of the run's
+//! [`PoseSource`](crate::PoseSource), with snapshots for resuming. Progress display and the
+//! end-of-run outputs belong to the caller, through a [`RunObserver`].
+
+use std::path::Path;
+use std::time::Instant;
+
+use sgam_map::TsdfMap;
+
+use crate::snapshot::{write_snapshot, SnapshotState};
+use crate::{
+    build_refiner, AnyRefiner, Keyframes, PipelineError, Result, RunConfig, Seed, StepTimings, WorldGenerator,
+};
+
+/// The generator of a run.
+pub type RunGenerator = WorldGenerator<AnyRefiner>;
+
+/// What a resumed run restores from its snapshot.
+#[derive(Debug)]
+pub struct Resume {
+    /// The state stored with the map.
+    pub state: SnapshotState,
+    /// The map.
+    pub map: TsdfMap,
+}
+
+/// Hooks of a run: the caller's progress display and per-step outputs. Every method has a
+/// stand-in default that does nothing.
+pub trait RunObserver {
+    /// After the seed is fused (new runs only).
+    fn after_seed(&mut self, _gen: &mut RunGenerator) -> Result<()> {
+        Ok(())
+    }
+    /// Before the first step of this invocation: `total` cameras (seed included), `done` already.
+    fn started(&mut self, _resumed: bool, _total: usize, _done: usize, _seed: &Seed) -> Result<()> {
+        Ok(())
+    }
+    /// After step `index` (of `total` cameras) with its timings.
+    fn after_step(&mut self, _index: usize, _total: usize, _gen: &mut RunGenerator, _t: &StepTimings) -> Result<()> {
+        Ok(())
+    }
+}
+
+/// A run observer that does nothing.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Quiet;
+impl RunObserver for Quiet {}
+
+/// The state at the end of [`generate`].
+#[derive(Debug)]
+pub struct Generated {
+    /// The generator (map and keyframes).
+    pub generator: RunGenerator,
+    /// One per step done (all invocations).
+    pub timings: Vec<StepTimings>,
+    /// `false` when the run stopped early (`stop_after`) and stays resumable.
+    pub finished: bool,
+    /// Steps done by this invocation.
+    pub steps_this_run: usize,
+    /// Wall time of this invocation's steps, seconds.
+    pub wall_s: f64,
+}
+
+/// Runs (or, with `resume`, continues) `config` in the run folder `dir`, writing a snapshot after
+/// the seed, every `snapshot_every` steps and at the end; `model_crc32` is stored with it.
+/// Stops after `stop_after` steps of this invocation when given.
+pub fn generate(
+    dir: &Path,
+    config: &RunConfig,
+    resume: Option<Resume>,
+    model_crc32: Option<u32>,
+    stop_after: Option<usize>,
+    observer: &mut dyn RunObserver,
+) -> Result<Generated> {
+    let seed = config.seed.load()?;
+    let refiner = build_refiner(&config.refiner, &seed)?;
+    // the path is checked before anything is written
+    let total = config.trajectory.total_cameras(&seed.camera, config.steps)?;
+    let gconfig = config.generator_config();
+    gconfig.tsdf.validate()?;
+    let mut keyframes = Keyframes::new(dir, gconfig.source_radius_m, 96);
+    let resumed = resume.is_some();
+    let (map, mut timings) = match resume {
+        Some(mut r) => {
+            for c in &r.state.cameras {
+                keyframes.push_camera(*c);
+            }
+            // the map file does not store the threshold: the run's configuration holds it
+            r.map.set_weight_threshold(gconfig.tsdf.weight_threshold);
+            (r.map, r.state.timings)
+        }
+        None => (TsdfMap::new(gconfig.tsdf), Vec::new()),
+    };
+    let mut gen = WorldGenerator::new(map, keyframes, refiner, gconfig);
+    let snapshot = |gen: &RunGenerator, timings: &[StepTimings]| {
+        let state = SnapshotState {
+            config: config.clone(),
+            cameras: gen.keyframes.cameras().to_vec(),
+            timings: timings.to_vec(),
+            model_crc32,
+        };
+        write_snapshot(dir, &state, &gen.map)
+    };
+    if !resumed {
+        gen.seed(&seed.camera, seed.frame.clone())?;
+        observer.after_seed(&mut gen)?;
+        // a snapshot from the start: a run killed before its first snapshot interval is resumable
+        snapshot(&gen, &timings)?;
+    }
+    let done = gen.keyframes.len();
+    let mut poses = config.trajectory.pose_source(&seed.camera, config.steps, gen.keyframes.cameras())?;
+    observer.started(resumed, total, done, &seed)?;
+    let start = Instant::now();
+    let mut this_run = 0usize;
+    let mut finished = false;
+    for i in done..total {
+        let Some(camera) = poses.next_camera(&mut gen.map) else { break };
+        let t = gen.step(&camera).map_err(|e| PipelineError::Step { index: i, source: Box::new(e) })?;
+        timings.push(t);
+        this_run += 1;
+        observer.after_step(i, total, &mut gen, &t)?;
+        finished = i + 1 == total;
+        let stopping = stop_after.is_some_and(|n| this_run >= n);
+        if finished || stopping || i % config.outputs.snapshot_every == 0 {
+            snapshot(&gen, &timings)?;
+        }
+        if stopping && !finished {
+            break;
+        }
+    }
+    // a greedy walk that ran out of cells ends the run too
+    let stopped_early = stop_after.is_some_and(|n| this_run >= n) && !finished;
+    Ok(Generated {
+        generator: gen,
+        timings,
+        finished: !stopped_early,
+        steps_this_run: this_run,
+        wall_s: start.elapsed().as_secs_f64(),
+    })
+}

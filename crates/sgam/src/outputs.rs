@@ -1,0 +1,235 @@
+//! What `sgam generate` shows and writes around the pipeline's run: the progress bar and the live
+//! viewer ([`CliObserver`]), per-step extras (millimetre depth PNGs, intermediate meshes) and the
+//! end-of-run outputs ([`finish_outputs`]: mesh, map, transforms.json, fly-through, overview,
+//! run.json, world.html).
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use indicatif::ProgressBar;
+use sgam_core::Camera;
+use sgam_pipeline::run::RunGenerator;
+use sgam_pipeline::{
+    frame_file_names, Generated, Keyframes, RunConfig, RunObserver, Seed, StepTimings, TrajectorySpec,
+};
+
+use crate::generate::DEPTH_PNG_MAX_M;
+use crate::live::LiveView;
+use crate::progress;
+
+type ObserverResult = std::result::Result<(), sgam_pipeline::PipelineError>;
+
+/// Progress bar, live viewer and per-step extras of a run on the command line.
+#[derive(Debug)]
+pub struct CliObserver<'a> {
+    dir: &'a Path,
+    config: &'a RunConfig,
+    /// `--view`, `--view-port`, `--view-every`.
+    view: (bool, u16, usize),
+    live: Option<LiveView>,
+    pb: Option<ProgressBar>,
+}
+
+impl<'a> CliObserver<'a> {
+    /// An observer of the run `config` in `dir`; the viewer is served when `view.0`.
+    pub fn new(dir: &'a Path, config: &'a RunConfig, view: (bool, u16, usize)) -> Self {
+        Self { dir, config, view, live: None, pb: None }
+    }
+
+    /// Clears the progress bar.
+    pub fn finish_progress(&mut self) {
+        if let Some(pb) = self.pb.take() {
+            pb.finish_and_clear();
+        }
+    }
+
+    /// Stops the live viewer after its last refresh.
+    pub fn finish_live(&mut self, cameras: &[Camera]) {
+        if let Some(live) = self.live.take() {
+            live.finish(cameras);
+        }
+    }
+}
+
+fn output_error(e: anyhow::Error) -> sgam_pipeline::PipelineError {
+    sgam_pipeline::PipelineError::Output(e.into())
+}
+
+impl RunObserver for CliObserver<'_> {
+    fn after_seed(&mut self, gen: &mut RunGenerator) -> ObserverResult {
+        if self.config.outputs.depth_png {
+            write_depth_png(self.dir, 0, &gen.keyframes.frame(0)?.depth_m).map_err(output_error)?;
+        }
+        Ok(())
+    }
+
+    fn started(&mut self, resumed: bool, total: usize, done: usize, seed: &Seed) -> ObserverResult {
+        eprintln!(
+            "{} {}: {} steps from {} ({} x {} px) -> {}",
+            if resumed { "resuming" } else { "generating" },
+            trajectory_name(&self.config.trajectory),
+            total - 1,
+            seed.name,
+            seed.camera.intrinsics.width,
+            seed.camera.intrinsics.height,
+            self.dir.display()
+        );
+        let (on, port, every) = self.view;
+        self.live = Some(LiveView::start_if(on, self.dir, port, every).map_err(output_error)?);
+        let pb = progress::bar(total as u64 - 1, "steps");
+        pb.set_position((done - 1) as u64);
+        self.pb = Some(pb);
+        Ok(())
+    }
+
+    fn after_step(&mut self, i: usize, total: usize, gen: &mut RunGenerator, t: &StepTimings) -> ObserverResult {
+        if let Some(live) = &mut self.live {
+            live.after_step(i, total, &mut gen.map, gen.keyframes.cameras());
+        }
+        if let Some(pb) = &self.pb {
+            pb.inc(1);
+            pb.set_message(format!("{:.0} ms/step, {:.0}% invented", t.total_ms, 100.0 * t.missing_fraction));
+        }
+        let outputs = &self.config.outputs;
+        if outputs.depth_png {
+            write_depth_png(self.dir, i, &gen.keyframes.frame(i)?.depth_m).map_err(output_error)?;
+        }
+        if outputs.mesh_every > 0 && i.is_multiple_of(outputs.mesh_every) {
+            sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh())?;
+        }
+        Ok(())
+    }
+}
+
+/// The trajectory's name as the command line spells it.
+fn trajectory_name(t: &TrajectorySpec) -> &'static str {
+    match t {
+        TrajectorySpec::Zigzag { .. } => "zigzag",
+        TrajectorySpec::Boustrophedon { .. } => "boustrophedon",
+        TrajectorySpec::Line { .. } => "line",
+        TrajectorySpec::Circle { .. } => "circle",
+        TrajectorySpec::Spiral { .. } => "spiral",
+        TrajectorySpec::File { .. } => "file",
+        TrajectorySpec::Greedy { .. } => "greedy",
+    }
+}
+
+/// Writes `depth/NNNNN.png` (millimetres) of keyframe `index`; depth beyond what 16 bits hold is
+/// stored as invalid (0), not clipped to a wrong value.
+fn write_depth_png(dir: &Path, index: usize, depth_m: &sgam_core::Image<f32>) -> Result<()> {
+    let (_, path) = Keyframes::frame_paths(dir, index);
+    let mut depth = depth_m.clone();
+    for d in &mut depth.data {
+        if *d > DEPTH_PNG_MAX_M {
+            *d = 0.0;
+        }
+    }
+    sgam_io::write_depth_png_mm(&path.with_extension("png"), &depth)?;
+    Ok(())
+}
+
+/// Writes the end-of-run outputs: mesh (PLY + GLB), map, transforms.json, fly-through, overview,
+/// run.json and world.html.
+pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Result<()> {
+    let (gen, timings, wall_s) = (&mut run.generator, &run.timings, run.wall_s);
+    let outputs = &config.outputs;
+    let mesh = gen.map.extract_mesh();
+    sgam_io::write_mesh(&dir.join("mesh.ply"), &mesh)?;
+    sgam_io::write_mesh(&dir.join("mesh.glb"), &mesh)?;
+    sgam_pipeline::save_map(&dir.join("map.bin"), &gen.map)?;
+    let cams = gen.keyframes.cameras();
+    let frames = (0..cams.len())
+        .map(|i| {
+            let (rgb, depth) = frame_file_names(i);
+            sgam_io::NerfFrame {
+                file_path: rgb,
+                depth_file_path: Some(depth),
+                world_from_camera: cams[i].world_from_camera,
+                intrinsics: None,
+            }
+        })
+        .collect();
+    let transforms =
+        sgam_io::NerfTransforms { intrinsics: cams[0].intrinsics, frames, depth_png_metres_per_unit: 0.001 };
+    sgam_io::write_nerf_transforms(&dir.join("transforms.json"), &transforms)?;
+    if outputs.video {
+        write_flythrough(dir, cams.len())?;
+    }
+    if outputs.video && outputs.mp4 {
+        crate::video::write_flythrough_mp4(dir, cams.len())?;
+    }
+    if outputs.orbit_video {
+        crate::video::write_orbit_mp4(&dir.join("orbit.mp4"), &gen.map, &mesh, crate::view::up_world(&cams[0]))?;
+    }
+    if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams[0], 1280, 800) {
+        let img = crate::overview::render_overview(&gen.map, &cam, near, far);
+        sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
+    }
+    sgam_io::write_rgb_png(&dir.join("strip.png"), &crate::overview::frame_strip(dir, cams.len(), 6)?)?;
+    let median = |v: &[f64]| sgam_metrics::median(v).unwrap_or(0.0);
+    let col = |f: fn(&StepTimings) -> f64| median(&timings.iter().map(f).collect::<Vec<_>>());
+    let summary = serde_json::json!({
+        "config": config,
+        "steps": timings.len(),
+        "keyframes": cams.len(),
+        "wall_s_this_invocation": wall_s,
+        "median_ms": {
+            "total": col(|t| t.total_ms), "sources": col(|t| t.sources_ms), "render": col(|t| t.render_ms),
+            "warp": col(|t| t.warp_ms), "refine": col(|t| t.refine_ms), "integrate": col(|t| t.integrate_ms),
+            "mesh": col(|t| t.mesh_ms), "write": col(|t| t.write_ms),
+        },
+        "median_missing_fraction": median(&timings.iter().map(|t| t.missing_fraction as f64).collect::<Vec<_>>()),
+        "map": { "blocks": gen.map.block_count(), "bytes": gen.map.memory_bytes(),
+                 "vertices": mesh.positions.len(), "triangles": mesh.triangles.len() },
+        "step_ms": timings.iter().map(|t| (t.total_ms * 1000.0).round() / 1000.0).collect::<Vec<_>>(),
+    });
+    let bytes = serde_json::to_vec_pretty(&summary)?;
+    sgam_io::write_atomic(&dir.join("run.json"), |w| std::io::Write::write_all(w, &bytes))?;
+    let page = crate::view::write_world_html(dir, crate::view::DEFAULT_EMBED_LIMIT_BYTES)?;
+    eprintln!(
+        "done: {} steps, median {:.1} ms/step (refine {:.1}, map {:.1})",
+        timings.len(),
+        col(|t| t.total_ms),
+        col(|t| t.refine_ms),
+        col(|t| t.render_ms + t.warp_ms + t.integrate_ms + t.mesh_ms)
+    );
+    eprintln!("  mesh:        {}  ({} vertices)", dir.join("mesh.ply").display(), mesh.positions.len());
+    eprintln!("  mesh (glTF): {}", dir.join("mesh.glb").display());
+    if outputs.video {
+        eprintln!("  fly-through: {}", dir.join("flythrough.gif").display());
+    }
+    if outputs.video && outputs.mp4 {
+        eprintln!("  video:       {}", dir.join("flythrough.mp4").display());
+    }
+    if outputs.orbit_video {
+        eprintln!("  orbit:       {}", dir.join("orbit.mp4").display());
+    }
+    eprintln!(
+        "  viewer:      {}  (open it in a browser{})",
+        page.path.display(),
+        if page.mesh_embedded { String::new() } else { format!("; large mesh: sgam view {} --serve", dir.display()) }
+    );
+    eprintln!("  overview:    {}  (and strip.png: 6 frames)", dir.join("overview.png").display());
+    eprintln!("  poses:       {}  (nerfstudio / instant-ngp)", dir.join("transforms.json").display());
+    eprintln!("  frames:      {}/rgb, {}/depth", dir.display(), dir.display());
+    Ok(())
+}
+
+/// An animated GIF of (at most 200 evenly chosen) generated frames, 10 frames/s.
+fn write_flythrough(dir: &Path, n: usize) -> Result<()> {
+    use image::codecs::gif::{GifEncoder, Repeat};
+    let stride = n.div_ceil(200).max(1);
+    let path = dir.join("flythrough.gif");
+    let mut frames = Vec::new();
+    for i in (0..n).step_by(stride) {
+        let (rgb, _) = Keyframes::frame_paths(dir, i);
+        let img = image::open(&rgb).with_context(|| format!("{}: cannot read frame", rgb.display()))?.to_rgba8();
+        frames.push(image::Frame::from_parts(img, 0, 0, image::Delay::from_numer_denom_ms(100, 1)));
+    }
+    sgam_io::write_atomic(&path, |w| {
+        let mut enc = GifEncoder::new_with_speed(w, 20);
+        enc.set_repeat(Repeat::Infinite).map_err(std::io::Error::other)?;
+        enc.encode_frames(frames).map_err(std::io::Error::other)
+    })?;
+    Ok(())
+}
