@@ -152,7 +152,7 @@ impl<R: Refiner> WorldGenerator<R> {
         if let Some(g) = self.ground {
             return Ok(g);
         }
-        if self.keyframes.len() == 0 {
+        if self.keyframes.is_empty() {
             return Ok(None);
         }
         let seed = self.keyframes.frame(0)?;

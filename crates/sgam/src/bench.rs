@@ -138,7 +138,11 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
     let refiner = compact_refiner()?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
-    let config = sgam_pipeline::clevr_generator_config(0);
+    // generate's defaults: the ground prior on
+    let config = sgam_pipeline::GeneratorConfig {
+        ground_snap_m: Some(crate::generate::DEFAULT_GROUND_SNAP_M),
+        ..sgam_pipeline::clevr_generator_config(0)
+    };
     let keyframes = sgam_pipeline::Keyframes::new(dir.path(), 1.0, 96);
     let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
     let (seed_cam, seed_frame) = &seq[0];
