@@ -31,7 +31,15 @@ fn the_oracle_judged_against_itself_is_identical_and_the_null_fill_is_not() {
     assert_eq!(n["oracle"], v["oracle"], "the oracle world is grown once and reused");
     assert_ne!(n["generated"], n["oracle"]);
     assert!(n["kid"].as_f64().unwrap() > kid_self, "null KID {} vs oracle {kid_self}", n["kid"]);
-    assert!(std::path::Path::new(out).join("seed-1000000/null/mesh.ply").exists());
+    // the null's world is kept under its label (`null`, plus `-g<M>` with the ground prior)
+    let seed_dir = std::path::Path::new(out).join("seed-1000000");
+    let null_worlds: Vec<_> = std::fs::read_dir(&seed_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with("null") && !n.ends_with("-loop"))
+        .collect();
+    assert_eq!(null_worlds.len(), 1, "{null_worlds:?}");
+    assert!(seed_dir.join(&null_worlds[0]).join("mesh.ply").exists());
     // the plain-text summary names the bars
     let text = ok(&[&common_args[..8], &["--refiner", "null"]].concat());
     assert!(text.contains("objects per 100 m2") && text.contains("(bar 0.5-1.5x)"), "{text}");
