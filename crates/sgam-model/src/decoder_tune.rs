@@ -16,7 +16,7 @@
 use std::path::Path;
 
 use burn::module::Module;
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 use sgam_core::{Intrinsics, RgbdFrame};
@@ -47,13 +47,7 @@ pub struct DecoderTuneConfig {
 impl DecoderTuneConfig {
     /// Learning rate after `step` steps.
     pub fn lr_at(&self, step: u64) -> f64 {
-        match self.lr_decay_from {
-            Some(from) if step >= from && self.steps > from => {
-                let t = ((step - from) as f64 / (self.steps - from) as f64).min(1.0);
-                self.lr * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()))
-            }
-            _ => self.lr,
-        }
+        crate::train::half_cosine_lr(self.lr, self.steps, self.lr_decay_from, step)
     }
 }
 
@@ -111,7 +105,7 @@ impl std::fmt::Debug for DecoderTuner {
 }
 
 fn adam() -> ModuleOptimizer {
-    AdamConfig::new().with_beta_1(0.9).with_beta_2(0.99).with_epsilon(1e-8).init()
+    crate::train::adam_with(0.9, 0.99)
 }
 
 fn freeze_all_but_decoder(model: VqModel) -> VqModel {

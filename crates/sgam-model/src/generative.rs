@@ -26,7 +26,7 @@
 use std::path::Path;
 
 use burn::module::{Module, Param};
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::activation::{log_softmax, softmax};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use rand::SeedableRng;
@@ -180,13 +180,7 @@ impl Default for CodeTrainConfig {
 impl CodeTrainConfig {
     /// Learning rate after `step` steps.
     pub fn lr_at(&self, step: u64) -> f64 {
-        match self.lr_decay_from {
-            Some(from) if step >= from && self.steps > from => {
-                let t = ((step - from) as f64 / (self.steps - from) as f64).min(1.0);
-                self.lr * (0.05 + 0.95 * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()))
-            }
-            _ => self.lr,
-        }
+        crate::train::half_cosine_lr(self.lr, self.steps, self.lr_decay_from, step)
     }
 }
 
@@ -261,7 +255,7 @@ impl std::fmt::Debug for CodeTrainer {
 }
 
 fn adam() -> ModuleOptimizer {
-    AdamConfig::new().with_beta_1(0.9).with_beta_2(0.99).with_epsilon(1e-8).init()
+    crate::train::adam_with(0.9, 0.99)
 }
 
 fn freeze(model: VqModel) -> VqModel {

@@ -162,17 +162,28 @@ pub struct ConfigDifference {
 /// Fraction of `lr` that the cosine decay ends at.
 pub const LR_FLOOR: f64 = 0.05;
 
+/// The learning-rate schedule every trainer of this crate uses: `lr` until `decay_from`, then a
+/// half cosine down to `lr * LR_FLOOR` at `steps` (constant when `decay_from` is `None` or not
+/// before `steps`). The rate of the step that follows `step` optimisation steps.
+pub fn half_cosine_lr(lr: f64, steps: u64, decay_from: Option<u64>, step: u64) -> f64 {
+    match decay_from {
+        Some(from) if step >= from && steps > from => {
+            let t = ((step - from) as f64 / (steps - from) as f64).min(1.0);
+            lr * (LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos()))
+        }
+        _ => lr,
+    }
+}
+
+/// Adam with this crate's epsilon (1e-8) and the given betas.
+pub(crate) fn adam_with(beta_1: f32, beta_2: f32) -> ModuleOptimizer {
+    AdamConfig::new().with_beta_1(beta_1).with_beta_2(beta_2).with_epsilon(1e-8).init()
+}
+
 impl TrainConfig {
     /// Learning rate of the step that follows `step` optimisation steps.
     pub fn lr_at(&self, step: u64) -> f64 {
-        match self.lr_decay_from {
-            Some(from) if step >= from && self.steps > from => {
-                let t = ((step - from) as f64 / (self.steps - from) as f64).min(1.0);
-                let scale = LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1.0 + (std::f64::consts::PI * t).cos());
-                self.lr * scale
-            }
-            _ => self.lr,
-        }
+        half_cosine_lr(self.lr, self.steps, self.lr_decay_from, step)
     }
 
     /// Checks every field is finite and in range for `model` (the crop a positive multiple of its
@@ -450,7 +461,7 @@ impl std::fmt::Debug for Trainer {
 }
 
 fn adam(cfg: &TrainConfig) -> ModuleOptimizer {
-    AdamConfig::new().with_beta_1(cfg.beta1).with_beta_2(cfg.beta2).with_epsilon(1e-8).init()
+    adam_with(cfg.beta1, cfg.beta2)
 }
 
 /// Freezes everything but the mask fusion conv and the encoder (stage 2).
