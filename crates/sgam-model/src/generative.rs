@@ -19,6 +19,12 @@
 //! `post_quant_conv` and the decoder stay bit-identical, so the decoder still turns codes into
 //! the stage-1 autoencoder's pixels. Training needs no decoder pass (it runs at encoder speed).
 //!
+//! **MaskGIT training** ([`CodeTrainConfig::reveal`]): generation fills a large hole in passes,
+//! each committing some cells and pasting their decoded pixels in as observed before the next.
+//! To train for that, a share of the pairs have a random part of their missing cells revealed
+//! first, with the frozen decoder's pixels of the target codes ([`reveal_cells`]), so the
+//! encoder learns to complete a hole around cells already drawn, not only from its rim.
+//!
 //! Checkpoints ([`CodeTrainer::save`]) are one folder, `RUN/ckpt`, replaced as a whole: written
 //! to `RUN/ckpt.new`, then swapped in by renames, so a kill at any moment leaves either the old
 //! or the new checkpoint, never a mix.
@@ -29,14 +35,15 @@ use burn::module::{Module, Param};
 use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::activation::{log_softmax, softmax};
 use burn::tensor::{Device, Int, Tensor, TensorData};
-use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use sgam_core::{Intrinsics, RgbdFrame};
 
 use crate::config::ModelConfig;
 use crate::model::VqModel;
-use crate::packing::{missing_cells, pack_input};
+use crate::packing::{missing_cells, pack_input, unpack};
 use crate::params::{
     from_safetensors_bytes, load_named, named_tensors, param_id_for_path, save_safetensors, write_atomic, NamedTensor,
     WeightPrecision,
@@ -149,6 +156,12 @@ pub struct CodeTrainConfig {
     /// far edge). 0 = cross-entropy only (the first generative run).
     #[serde(default)]
     pub depth_weight: f32,
+    /// MaskGIT training: the probability that a training pair has a random share of its
+    /// missing cells revealed ([`reveal_cells`]) before the step; the revealed share follows
+    /// MaskGIT's cosine schedule (`1 - cos(pi u / 2)`, `u` uniform), and at least one cell
+    /// stays missing. 0 = the hole as recorded (runs before this option).
+    #[serde(default)]
+    pub reveal: f32,
 }
 
 fn default_target_smoothing() -> f32 {
@@ -173,6 +186,7 @@ impl Default for CodeTrainConfig {
             tau_lr_scale: default_tau_lr_scale(),
             target_smoothing: default_target_smoothing(),
             depth_weight: 0.0,
+            reveal: 0.0,
         }
     }
 }
@@ -297,6 +311,30 @@ fn draw_codes(logp: &[f32], k: usize, targets: &[u32], missing: &[bool], rng: &m
 /// Colour agreement (mean absolute difference over the three packed colour channels, `[-1, 1]`
 /// units) below which a drawn pixel counts as "the same kind of surface" as the target's.
 pub const DEPTH_GATE_COLOUR: f32 = 0.1;
+
+/// `pair` with the latent cells `cells` (row-major indices) revealed: their missing pixels
+/// take `decoded`'s colour and depth (the decoder's pixels of the target codes, what generation
+/// pastes for a committed cell) and count as observed. Observed pixels and the other cells are
+/// unchanged; the targets stay the same.
+pub fn reveal_cells(pair: &CodePair, decoded: &RgbdFrame, cells: &[usize], factor: usize) -> CodePair {
+    let (w, h) = (pair.input.width() as usize, pair.input.height() as usize);
+    let cw = w / factor.max(1);
+    let mut out = pair.clone();
+    for &i in cells {
+        let (cy, cx) = (i / cw.max(1), i % cw.max(1));
+        for y in cy * factor..((cy + 1) * factor).min(h) {
+            for x in cx * factor..((cx + 1) * factor).min(w) {
+                let p = y * w + x;
+                if out.missing[p] {
+                    out.input.colour.data[p] = decoded.colour.data[p];
+                    out.input.depth_m.data[p] = decoded.depth_m.data[p];
+                    out.missing[p] = false;
+                }
+            }
+        }
+    }
+    out
+}
 
 /// The frozen decoder's output `[B, 4, H, W]` for codebook rows `[B h w, D]` (row-major cells)
 /// of latent shape `[B, h, w]`.
@@ -531,11 +569,61 @@ impl CodeTrainer {
         r
     }
 
+    /// MaskGIT training: each pair, with probability [`CodeTrainConfig::reveal`], gets a random
+    /// share of its missing cells revealed with the decoded target codes.
+    fn reveal_batch(&mut self, batch: &[CodePair]) -> Result<Vec<CodePair>, ModelError> {
+        let f = self.model_config.downsample_factor();
+        let threshold = self.train_config.missing_cell_threshold;
+        let mut out = batch.to_vec();
+        let mut chosen: Vec<(usize, Vec<usize>)> = Vec::new();
+        for (b, p) in batch.iter().enumerate() {
+            if self.rng.random::<f32>() >= self.train_config.reveal {
+                continue;
+            }
+            let (w, h) = (p.input.width() as usize, p.input.height() as usize);
+            let mut open: Vec<usize> = missing_cells(&p.missing, w, h, f, threshold)
+                .iter()
+                .enumerate()
+                .filter(|c| *c.1)
+                .map(|c| c.0)
+                .collect();
+            let u: f32 = self.rng.random();
+            let n = (((1.0 - (std::f32::consts::FRAC_PI_2 * u).cos()) * open.len() as f32) as usize)
+                .min(open.len().saturating_sub(1));
+            if n == 0 {
+                continue;
+            }
+            open.shuffle(&mut self.rng);
+            open.truncate(n);
+            chosen.push((b, open));
+        }
+        if chosen.is_empty() {
+            return Ok(out);
+        }
+        let model = self.model.valid();
+        let picked: Vec<CodePair> = chosen.iter().map(|(b, _)| batch[*b].clone()).collect();
+        let codes: Vec<u32> = picked.iter().flat_map(|p| p.codes.iter().copied()).collect();
+        let shape = self.latent_shape(&picked);
+        let decoded =
+            unpack(decode_rows(&model, model.quantize.lookup(&codes, &self.device), shape), &self.model_config.depth)?;
+        for ((b, cells), d) in chosen.iter().zip(&decoded) {
+            out[*b] = reveal_cells(&batch[*b], d, cells, f);
+        }
+        Ok(out)
+    }
+
     /// One optimisation step on `batch` (all pairs the same size).
     pub fn step_on(&mut self, batch: &[CodePair]) -> Result<CodeReport, ModelError> {
         if batch.is_empty() {
             return Err(ModelError::Input("empty batch".into()));
         }
+        let revealed;
+        let batch = if self.train_config.reveal > 0.0 {
+            revealed = self.reveal_batch(batch)?;
+            revealed.as_slice()
+        } else {
+            batch
+        };
         let dev = self.device.clone().autodiff();
         let (x, codes, miss) = self.batch_tensors(batch, &dev)?;
         let n = codes.len();

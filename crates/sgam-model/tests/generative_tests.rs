@@ -8,7 +8,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Image, Intrinsics, RgbdFrame};
 use sgam_model::decoder_tune::{DecoderTuneConfig, DecoderTuner};
-use sgam_model::generative::{target_codes, CodePair, CodeTrainConfig, CodeTrainer};
+use sgam_model::generative::{reveal_cells, target_codes, CodePair, CodeTrainConfig, CodeTrainer};
 use sgam_model::packing::{pack_input, pack_values};
 use sgam_model::params::{named_tensors, NamedTensor};
 use sgam_model::quantize::{quantize, select_codes};
@@ -259,6 +259,59 @@ fn a_tiny_sampler_learns_a_two_pattern_world_in_its_proportions() {
     let share = a as f64 / (a + b) as f64;
     // binomial sd at n = 400 is 0.022; allow 3 sd plus the fit's own error
     assert!((share - 0.75).abs() < 0.1, "pattern A drawn {share:.3} of the A/B draws ({a} / {b})");
+}
+
+#[test]
+fn revealing_cells_pastes_the_decoded_pixels_as_observed_and_leaves_the_rest() {
+    // 8x8 pixels in cells of 4: cells 0 1 / 2 3; the right half (cells 1, 3) is missing, and
+    // one pixel of cell 0
+    let (input, decoded) = (frame(8, 8, 1), frame(8, 8, 2));
+    let mut missing: Vec<bool> = (0..64).map(|p| p % 8 >= 4).collect();
+    missing[0] = true;
+    let pair = CodePair {
+        input: input.clone(),
+        missing: missing.clone(),
+        intrinsics: Intrinsics::from_fov_x(8, 8, 1.0),
+        codes: vec![0, 1, 2, 3],
+    };
+    let out = reveal_cells(&pair, &decoded, &[1], 4);
+    for p in 0..64 {
+        let in_cell_1 = p % 8 >= 4 && p / 8 < 4;
+        let from = if in_cell_1 { &decoded } else { &input };
+        assert_eq!(out.missing[p], missing[p] && !in_cell_1, "pixel {p}");
+        assert_eq!(out.input.colour.data[p], from.colour.data[p], "pixel {p}");
+        assert_eq!(out.input.depth_m.data[p], from.depth_m.data[p], "pixel {p}");
+    }
+    assert_eq!(out.codes, pair.codes);
+    // revealing an observed cell changes nothing
+    let same = reveal_cells(&pair, &decoded, &[2], 4);
+    assert_eq!((same.input, same.missing), (pair.input, pair.missing));
+}
+
+#[test]
+fn maskgit_training_reveals_part_of_a_hole_and_always_leaves_some_of_it_missing() {
+    let device = default_device();
+    let cfg = ModelConfig { ray_channels: true, ..ModelConfig::tiny() };
+    let tensors = named_tensors(&VqModel::new(&ModelConfig::tiny(), 5, &device).unwrap());
+    let k = Intrinsics::from_fov_x(16, 16, 1.0);
+    // the bottom half missing: 8 of the 16 latent cells
+    let pairs: Vec<CodePair> = (0..4)
+        .map(|s| CodePair {
+            input: frame(16, 16, s),
+            missing: (0..256).map(|p| p / 16 >= 8).collect(),
+            intrinsics: k,
+            codes: (0..16).map(|i| (i * 3 + s as u32) % 32).collect(),
+        })
+        .collect();
+    let counts = |reveal: f32| -> Vec<usize> {
+        let tc = CodeTrainConfig { steps: 12, batch: 4, reveal, ..CodeTrainConfig::default() };
+        let mut t = CodeTrainer::new(&cfg, &tensors, &tc).unwrap();
+        (0..12).map(|_| t.step_on(&pairs).unwrap().missing_cells).collect()
+    };
+    assert!(counts(0.0).iter().all(|&n| n == 32), "without reveal every hole stays whole");
+    let revealed = counts(1.0);
+    assert!(revealed.iter().all(|&n| (4..=32).contains(&n)), "each pair keeps a missing cell: {revealed:?}");
+    assert!(revealed.iter().any(|&n| n < 32), "no cell was ever revealed: {revealed:?}");
 }
 
 #[test]

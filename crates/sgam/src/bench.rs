@@ -87,6 +87,7 @@ fn compact_refiner() -> Result<sgam_model::VqRefiner> {
             temperature: crate::generate::DEFAULT_TEMPERATURE,
             top_k: usize::MAX,
         },
+        cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
         ..Default::default()
     };
     Ok(sgam_model::VqRefiner::from_bytes(sgam_pipeline::BUNDLED_MODEL, None, options)?)

@@ -108,6 +108,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
             no_map: row.no_map,
             no_refine: row.no_refine,
             ground_snap: crate::generate::DEFAULT_GROUND_SNAP_M,
+            cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
             paper: false,
             region_size: 5.0,
             out: Some(a.out.clone()),

@@ -70,6 +70,9 @@ pub struct WorldArgs {
     /// Ground prior of the refiner's worlds, metres (0 = off; see `sgam generate --help`).
     #[arg(long, default_value_t = crate::generate::DEFAULT_GROUND_SNAP_M)]
     pub ground_snap: f32,
+    /// Missing latent cells the model draws per pass (see `sgam generate --help`).
+    #[arg(long, default_value_t = crate::generate::DEFAULT_CELLS_PER_PASS)]
+    pub cells_per_pass: usize,
     /// Ablation: no global map (warp from the previous frame only).
     #[arg(long)]
     pub no_map: bool,
@@ -114,6 +117,9 @@ impl WorldArgs {
         let mut label = base;
         if matches!(self.refiner, RefinerKind::Auto | RefinerKind::Model) && !self.no_refine {
             label.push_str(&format!("-t{}", self.temperature));
+            if self.cells_per_pass != crate::generate::DEFAULT_CELLS_PER_PASS {
+                label.push_str(&format!("-c{}", self.cells_per_pass));
+            }
         }
         if self.refiner != RefinerKind::Oracle && self.ground_snap > 0.0 {
             label.push_str(&format!("-g{}", self.ground_snap));
@@ -146,6 +152,9 @@ impl WorldArgs {
         if !(self.temperature.is_finite() && self.temperature >= 0.0) {
             bail!("--temperature {} must be a non-negative number", self.temperature);
         }
+        if self.cells_per_pass == 0 {
+            bail!("--cells-per-pass must be at least 1");
+        }
         if !(self.ground_snap.is_finite() && (0.0..=10.0).contains(&self.ground_snap)) {
             bail!("--ground-snap {} must be between 0 and 10 metres", self.ground_snap);
         }
@@ -173,6 +182,7 @@ fn generate_args(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: us
         g.no_map = args.no_map;
         g.no_refine = args.no_refine;
         g.ground_snap = args.ground_snap;
+        g.cells_per_pass = args.cells_per_pass;
     }
     g
 }

@@ -44,6 +44,13 @@ pub const DEFAULT_GROUND_SNAP_M: f32 = 0.8;
 /// washes out their colour.
 pub const DEFAULT_TEMPERATURE: f32 = 1.3;
 
+/// Default of `--cells-per-pass` (generate, eval world, bench): the library's default.
+pub const DEFAULT_CELLS_PER_PASS: usize = 48;
+
+fn default_cells_per_pass() -> usize {
+    DEFAULT_CELLS_PER_PASS
+}
+
 /// Which refiner completes the guidance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 pub enum RefinerKind {
@@ -133,6 +140,12 @@ pub struct GenerateArgs {
     /// Codes considered when sampling: the k nearest (0 = all, the calibrated distribution).
     #[arg(long, default_value_t = 0)]
     pub top_k: usize,
+    /// Iterative (MaskGIT-style) sampling: missing latent cells drawn per pass. A hole of more
+    /// cells takes several passes (at most 4); each commits the most confident draws and
+    /// re-encodes, so later cells see earlier ones. Larger = faster, less coherent.
+    #[arg(long, default_value_t = DEFAULT_CELLS_PER_PASS)]
+    #[serde(default = "default_cells_per_pass")]
+    pub cells_per_pass: usize,
     /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
     /// guidance is kept where it was observed and the model fills only the missing pixels.
     #[arg(long)]
@@ -248,6 +261,7 @@ impl GenerateArgs {
         in_range("--temperature", self.temperature, 0.0..=100.0)?;
         in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
         in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
+        in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
         if let Some(k) = self.k_sources {
             in_range("--k-sources", k, 1..=64)?;
         }
@@ -440,6 +454,7 @@ pub fn refiner_spec(args: &GenerateArgs) -> RefinerSpec {
                 sampling: sgam_pipeline::sampling(args.temperature, args.top_k),
                 seed: args.seed,
                 keep_observed: !args.regenerate_observed,
+                cells_per_pass: args.cells_per_pass,
                 ..Default::default()
             },
         },

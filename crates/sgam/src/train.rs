@@ -59,14 +59,41 @@ pub struct ExportArgs {
     /// Keep 32-bit floats.
     #[arg(long)]
     pub f32: bool,
+    /// Take `post_quant_conv` and the decoder from this model (same codebook required): pairs a
+    /// newly trained sampler with a decoder tuned on whole frames (`sgam train decoder`).
+    #[arg(long, value_name = "FILE")]
+    pub decoder_from: Option<PathBuf>,
 }
 
 fn export(a: &ExportArgs) -> Result<()> {
     crate::guard::check_input_file("input", &a.input)?;
     crate::guard::check_output_file("output", &a.output)?;
     let device = sgam_model::default_device();
-    let (model, config) = sgam_model::refiner::load_model(&a.input, None, &device)
+    let (mut model, config) = sgam_model::refiner::load_model(&a.input, None, &device)
         .with_context(|| format!("{}: cannot load the model", a.input.display()))?;
+    if let Some(d) = &a.decoder_from {
+        crate::guard::check_input_file("--decoder-from", d)?;
+        let (other, other_config) = sgam_model::refiner::load_model(d, None, &device)
+            .with_context(|| format!("{}: cannot load the model", d.display()))?;
+        if (other_config.n_embed, other_config.embed_dim, other_config.z_channels)
+            != (config.n_embed, config.embed_dim, config.z_channels)
+        {
+            bail!("{}: its codebook or latent size differs from {}'s", d.display(), a.input.display());
+        }
+        let host = |m: &sgam_model::VqModel| -> Result<Vec<f32>> {
+            m.quantize.embedding.weight.val().into_data().try_to_vec::<f32>().map_err(|e| anyhow::anyhow!("{e:?}"))
+        };
+        let (mine, theirs) = (host(&model)?, host(&other)?);
+        if mine.iter().zip(&theirs).any(|(x, y)| (x - y).abs() > 1e-3 * y.abs().max(1.0)) {
+            bail!(
+                "{}: its codebook differs from {}'s; a decoder only fits the codes it was trained on",
+                d.display(),
+                a.input.display()
+            );
+        }
+        model.post_quant_conv = other.post_quant_conv;
+        model.decoder = other.decoder;
+    }
     let precision =
         if a.f32 { sgam_model::params::WeightPrecision::F32 } else { sgam_model::params::WeightPrecision::F16 };
     sgam_model::refiner::save_model(&model, &config, &a.output, precision)
@@ -98,6 +125,11 @@ pub struct SamplerArgs {
     /// the target codes', in missing pixels (0 = cross-entropy only).
     #[arg(long, default_value_t = 0.0)]
     pub depth_weight: f32,
+    /// MaskGIT training: probability that a training pair has a random share of its missing
+    /// cells revealed (with the decoded target codes) before the step, as generation's later
+    /// passes see a hole around cells already drawn. 0 = the holes as recorded.
+    #[arg(long, default_value_t = 0.5)]
+    pub reveal: f32,
     /// Do not add the two ray (pixel-direction) input channels.
     #[arg(long)]
     pub no_rays: bool,

@@ -35,6 +35,9 @@ fn validate(a: &SamplerArgs) -> Result<()> {
     if !(a.depth_weight.is_finite() && (0.0..=1000.0).contains(&a.depth_weight)) {
         bail!("--depth-weight {} must be between 0 and 1000", a.depth_weight);
     }
+    if !(a.reveal.is_finite() && (0.0..=1.0).contains(&a.reveal)) {
+        bail!("--reveal {} must be a probability between 0 and 1", a.reveal);
+    }
     if let Some(from) = a.lr_decay_from {
         if from >= a.steps {
             bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
@@ -84,6 +87,13 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
                 t.train_config.depth_weight
             );
         }
+        if t.train_config.reveal != a.reveal {
+            bail!(
+                "{}: this run trains with --reveal {}; resume with it (or start a new run)",
+                a.run.display(),
+                t.train_config.reveal
+            );
+        }
         eprintln!("resuming {} at step {}", a.run.display(), t.step);
         t
     } else {
@@ -95,6 +105,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             observed_weight: a.observed_weight,
             target_smoothing: a.target_smoothing,
             depth_weight: a.depth_weight,
+            reveal: a.reveal,
             ckpt_every: a.ckpt_every,
             seed: a.seed,
             ..CodeTrainConfig::default()
