@@ -127,8 +127,9 @@ pub struct SamplerArgs {
     pub depth_weight: f32,
     /// MaskGIT training: probability that a training pair has a random share of its missing
     /// cells revealed (with the decoded target codes) before the step, as generation's later
-    /// passes see a hole around cells already drawn. 0 = the holes as recorded.
-    #[arg(long, default_value_t = 0.5)]
+    /// passes see a hole around cells already drawn. 0 = the holes as recorded (the default:
+    /// 0.5 for 5,000 steps did not grow better worlds, docs/MODEL.md).
+    #[arg(long, default_value_t = 0.0)]
     pub reveal: f32,
     /// Do not add the two ray (pixel-direction) input channels.
     #[arg(long)]

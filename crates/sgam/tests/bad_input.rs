@@ -665,3 +665,38 @@ fn error_messages_say_each_cause_once_and_name_targets_not_temporary_files() {
     assert!(e.matches("os error").count() <= 1, "the cause is repeated: {e}");
     assert!(!t.join("m.ply").exists(), "the mesh was written before the bad --save-map was found");
 }
+
+#[test]
+fn export_takes_a_decoder_only_from_a_model_with_the_same_codebook() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let cfg = sgam_model::ModelConfig::tiny();
+    let dev = sgam_model::default_device();
+    let f32w = sgam_model::params::WeightPrecision::F32;
+    let sampler = sgam_model::VqModel::new(&cfg, 1, &dev).unwrap();
+    // a decoder tuned for the sampler's codes: same codebook, other decoder weights
+    let mut tuned = sgam_model::VqModel::new(&cfg, 2, &dev).unwrap();
+    tuned.quantize = sampler.quantize.clone();
+    let stranger = sgam_model::VqModel::new(&cfg, 3, &dev).unwrap();
+    let (a, b, c) = (t.join("sampler.safetensors"), t.join("tuned.safetensors"), t.join("stranger.safetensors"));
+    for (m, p) in [(&sampler, &a), (&tuned, &b), (&stranger, &c)] {
+        sgam_model::refiner::save_model(m, &cfg, p, f32w).unwrap();
+    }
+    let out = t.join("out.safetensors");
+    ok(&["train", "export", s(&a), s(&out), "--f32", "--decoder-from", s(&b)]);
+    let read = |p: &Path| sgam_model::params::from_safetensors_bytes(&std::fs::read(p).unwrap()).unwrap().0;
+    let (o, sa, tu) = (read(&out), read(&a), read(&b));
+    let mut decoder = 0;
+    for (name, v) in &o {
+        let from_tuned = name.starts_with("decoder.") || name.starts_with("post_quant_conv.");
+        let want = if from_tuned { &tu[name] } else { &sa[name] };
+        assert_eq!(v, want, "{name}");
+        decoder += from_tuned as usize;
+    }
+    assert!(decoder > 0 && o.keys().any(|n| n.starts_with("encoder.")));
+    assert_ne!(o["decoder.conv_out.weight"], sa["decoder.conv_out.weight"]);
+    // a decoder trained on other codes is refused, and nothing is written
+    let refused = t.join("refused.safetensors");
+    fails(&["train", "export", s(&a), s(&refused), "--decoder-from", s(&c)], &["stranger.safetensors", "codebook"]);
+    assert!(!refused.exists());
+}
