@@ -225,7 +225,7 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
             return Ok(dir);
         }
         bail!(
-            "{} holds a world grown with other options (steps, trajectory, step, temperature, ground prior or ablations); \
+            "{} holds a world grown with other options (steps, trajectory, step, temperature, cells per pass, ground prior or ablations); \
              remove it or choose another --out",
             dir.display()
         );
