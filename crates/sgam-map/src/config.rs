@@ -10,7 +10,8 @@ pub const MAX_TRUNC_VOXELS: f32 = 64.0;
 pub const MAX_DEPTH_M: f32 = 10_000.0;
 
 /// Parameters of a [`crate::TsdfMap`]. Defaults follow the SGAM authors' CLEVR-Infinite setup.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Serialisable: a run's resolved configuration stores it as its `map`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TsdfConfig {
     /// Edge length of one voxel, metres.
     pub voxel_size_m: f32,

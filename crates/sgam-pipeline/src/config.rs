@@ -18,37 +18,6 @@ pub const MAX_STEPS: usize = 1_000_000;
 /// Largest grid side of the grid trajectories.
 pub const MAX_GRID: usize = 1000;
 
-/// The map's parameters of a run (see [`TsdfConfig`]).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct MapSettings {
-    /// Voxel edge, metres.
-    pub voxel_size_m: f32,
-    /// Truncation, voxels.
-    pub trunc_voxels: f32,
-    /// Depth range used for integration and rendering, metres.
-    pub depth_min_m: f32,
-    /// Depth range used for integration and rendering, metres.
-    pub depth_max_m: f32,
-    /// Cap on the per-voxel weight.
-    pub weight_cap: Option<f32>,
-    /// Marching-cubes weight threshold (what meshing and the guidance render use).
-    pub weight_threshold: f32,
-}
-
-impl MapSettings {
-    /// The map's configuration.
-    pub fn tsdf(&self) -> TsdfConfig {
-        TsdfConfig {
-            voxel_size_m: self.voxel_size_m,
-            trunc_voxels: self.trunc_voxels,
-            depth_min_m: self.depth_min_m,
-            depth_max_m: self.depth_max_m,
-            weight_cap: self.weight_cap,
-            weight_threshold: self.weight_threshold,
-        }
-    }
-}
-
 /// What a run writes besides the frames (the pipeline writes snapshots; the caller the rest).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct OutputSettings {
@@ -80,7 +49,7 @@ pub struct RunConfig {
     /// The refiner.
     pub refiner: RefinerSpec,
     /// The map.
-    pub map: MapSettings,
+    pub map: TsdfConfig,
     /// Source keyframes per step.
     pub k_sources: usize,
     /// Sources must lie within this distance, metres.
@@ -102,7 +71,7 @@ impl RunConfig {
     /// map, sources and ablation.
     pub fn generator_config(&self) -> GeneratorConfig {
         GeneratorConfig {
-            tsdf: self.map.tsdf(),
+            tsdf: self.map,
             k_sources: self.k_sources,
             source_radius_m: self.source_radius_m,
             no_map: self.no_map,
@@ -150,7 +119,7 @@ impl RunConfig {
                 config_error!("ground prior tolerance {m} m (accepted (0, 10] m)");
             }
         }
-        self.map.tsdf().validate()?;
+        self.map.validate()?;
         Ok(())
     }
 }

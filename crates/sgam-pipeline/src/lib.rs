@@ -37,7 +37,7 @@ pub mod run;
 mod seeds;
 pub mod snapshot;
 
-pub use config::{MapSettings, OutputSettings, RunConfig, MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION};
+pub use config::{OutputSettings, RunConfig, MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION};
 pub use error::{PipelineError, Result};
 pub use generator::{clevr_generator_config, render_guidance, GeneratorConfig, StepTimings, WorldGenerator};
 pub use greedy::GreedyPlanner;

@@ -7,8 +7,8 @@ use sgam_core::{Camera, Vec3};
 use sgam_pipeline::run::generate;
 use sgam_pipeline::snapshot::{read_snapshot, SNAPSHOT_FILE, SNAPSHOT_VERSION};
 use sgam_pipeline::{
-    MapSettings, OutputSettings, Quiet, RefinerSpec, Resume, RunConfig, SeedSpec, TrajectorySpec, HELD_OUT_SEED_BASE,
-    RUN_CONFIG_VERSION,
+    clevr_generator_config, OutputSettings, Quiet, RefinerSpec, Resume, RunConfig, SeedSpec, TrajectorySpec,
+    HELD_OUT_SEED_BASE, RUN_CONFIG_VERSION,
 };
 use sgam_synth::{RenderConfig, Renderer, Scene, SceneConfig};
 
@@ -20,14 +20,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
         trajectory,
         steps,
         refiner,
-        map: MapSettings {
-            voxel_size_m: 0.05,
-            trunc_voxels: 10.0,
-            depth_min_m: 0.05,
-            depth_max_m: 20.0,
-            weight_cap: None,
-            weight_threshold: 1.0,
-        },
+        map: clevr_generator_config(0).tsdf,
         k_sources: 5,
         source_radius_m: 1.0,
         no_map: false,

@@ -9,8 +9,8 @@ use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
 use sgam_pipeline::snapshot::SNAPSHOT_FILE;
 use sgam_pipeline::{
-    check_intrinsics, MapSettings, OutputSettings, RefinerSpec, RunConfig, SeedSpec, TrajectorySpec,
-    HELD_OUT_SEED_BASE, RUN_CONFIG_VERSION,
+    check_intrinsics, OutputSettings, RefinerSpec, RunConfig, SeedSpec, TrajectorySpec, HELD_OUT_SEED_BASE,
+    RUN_CONFIG_VERSION,
 };
 
 use crate::guard::{in_range, positive, RunLock};
@@ -420,7 +420,7 @@ pub fn resolve(args: &GenerateArgs) -> Result<RunConfig> {
         trajectory,
         steps: args.steps,
         refiner: refiner_spec(args),
-        map: MapSettings {
+        map: sgam_map::TsdfConfig {
             voxel_size_m: args.voxel_size.unwrap_or(preset.voxel_size_m),
             trunc_voxels: args.trunc_voxels.unwrap_or(preset.trunc_voxels),
             depth_min_m: 0.05,
