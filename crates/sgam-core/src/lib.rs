@@ -15,6 +15,7 @@
 
 mod camera;
 mod colour;
+pub mod edges;
 mod error;
 pub mod ground;
 mod image;

@@ -34,7 +34,9 @@ pub struct TsdfConfig {
 }
 
 impl Default for TsdfConfig {
-    /// CLEVR-Infinite: 0.05 m voxels, truncation 10 voxels (0.5 m), depth range 0.1..20 m.
+    /// The SGAM authors' CLEVR-Infinite fusion: 0.05 m voxels, truncation 10 voxels (0.5 m), depth
+    /// range 0.1..20 m. (Generation's CLEVR preset, `sgam_pipeline::clevr_generator_config`,
+    /// truncates at 5 voxels since session 11: docs/MODEL.md.)
     fn default() -> Self {
         Self {
             voxel_size_m: 0.05,

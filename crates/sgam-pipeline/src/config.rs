@@ -64,6 +64,10 @@ pub struct RunConfig {
     /// plane are put on it, metres ([`GeneratorConfig::ground_snap_m`]); `None` = off.
     #[serde(default)]
     pub ground_snap_m: Option<f32>,
+    /// Invented flying pixels are given to a surface ([`GeneratorConfig::snap_flying_pixels`]);
+    /// runs written before it existed read as off.
+    #[serde(default)]
+    pub snap_flying_pixels: bool,
 }
 
 impl RunConfig {
@@ -76,6 +80,7 @@ impl RunConfig {
             source_radius_m: self.source_radius_m,
             no_map: self.no_map,
             ground_snap_m: self.ground_snap_m,
+            snap_flying_pixels: self.snap_flying_pixels,
             ..clevr_generator_config(self.run_seed)
         }
     }

@@ -3,6 +3,7 @@
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
+use sgam_core::edges::{snap_flying_pixels, FlyingPixelConfig};
 use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
@@ -30,28 +31,35 @@ pub struct GeneratorConfig {
     /// seed frame's ground plane (or below it) are put back on the plane
     /// ([`sgam_core::ground::snap_to_ground`]). `None` = the refiner's depth as it is.
     pub ground_snap_m: Option<f32>,
+    /// Invented pixels that hang between two surfaces (a decoder's depth ramp at a silhouette)
+    /// are given to the nearer surface or to the ground behind, before the ground prior
+    /// ([`sgam_core::edges::snap_flying_pixels`]). Off = the refiner's depth as it is.
+    pub snap_flying_pixels: bool,
 }
 
-/// The loop's parameters for the CLEVR-Infinite world (the SGAM authors' values): 5 cm voxels, truncation 10 voxels, depth 0.05-20 m, colour from the nearest source
-/// camera that passes the geometry check, the nearest 5 sources within 1 m, weight threshold 1.
+/// The loop's parameters for the CLEVR-Infinite world: the [`crate::seeds::CLEVR`] preset's voxels,
+/// truncation and sources (5 cm voxels, truncation 5 voxels, the nearest 5 sources within 1 m),
+/// depth 0.05-20 m, colour from the nearest source camera that passes the geometry check, weight
+/// threshold 1.
 /// Generation (`sgam generate`, whose options override fields of it) and the generative
 /// stage-2 training pairs ([`crate::codepairs`]) both start from this one value.
 pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
     GeneratorConfig {
         tsdf: TsdfConfig {
-            voxel_size_m: 0.05,
-            trunc_voxels: 10.0,
+            voxel_size_m: crate::seeds::CLEVR.voxel_size_m,
+            trunc_voxels: crate::seeds::CLEVR.trunc_voxels,
             depth_min_m: 0.05,
             depth_max_m: 20.0,
             weight_cap: None,
             weight_threshold: 1.0,
         },
         warp: WarpConfig { selection: SourceSelection::NearestCamera, ..WarpConfig::default() },
-        k_sources: 5,
-        source_radius_m: 1.0,
+        k_sources: crate::seeds::CLEVR.k_sources,
+        source_radius_m: crate::seeds::CLEVR.source_radius_m,
         no_map: false,
         seed,
         ground_snap_m: None,
+        snap_flying_pixels: false,
     }
 }
 
@@ -188,6 +196,11 @@ impl<R: Refiner> WorldGenerator<R> {
         // complete the incomplete RGB-D image in one shot
         let mut frame = self.refiner.refine(&guidance).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         quantise_colour(&mut frame.colour);
+        if self.config.snap_flying_pixels {
+            let plane = self.ground_plane()?;
+            let cfg = FlyingPixelConfig::new(self.config.tsdf.depth_max_m);
+            snap_flying_pixels(&mut frame, &guidance.missing, camera, plane.as_ref(), &cfg);
+        }
         if let Some(tolerance_m) = self.config.ground_snap_m {
             if let Some(plane) = self.ground_plane()? {
                 let cfg = GroundSnapConfig::new(tolerance_m, self.config.tsdf.depth_max_m);

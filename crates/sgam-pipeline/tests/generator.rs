@@ -34,6 +34,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
             orbit_video: false,
         },
         ground_snap_m: None,
+        snap_flying_pixels: false,
     }
 }
 
@@ -103,12 +104,15 @@ fn map_bytes(map: &sgam_map::TsdfMap) -> Vec<u8> {
 #[test]
 fn interrupted_then_resumed_run_equals_uninterrupted_run_for_both_pose_sources() {
     // the ground prior's plane is fitted lazily from keyframe 0: a resumed run must refit the
-    // same plane, so the third case runs with it on
+    // same plane, so the third case runs with it on (and with the flying pixels snapped, which
+    // use the plane too)
     let greedy = TrajectorySpec::Greedy { side: 4, step_m: 0.408 };
-    for (trajectory, ground_snap_m) in [(zigzag(10), None), (greedy, None), (zigzag(10), Some(0.8))] {
+    let cases = [(zigzag(10), None, false), (greedy, None, false), (zigzag(10), Some(0.8), true)];
+    for (trajectory, ground_snap_m, snap_flying_pixels) in cases {
         let tmp = tempfile::tempdir().unwrap();
         let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
-        let c = RunConfig { ground_snap_m, ..config(48, 10, trajectory.clone(), RefinerSpec::Null { fill: true }) };
+        let base = config(48, 10, trajectory.clone(), RefinerSpec::Null { fill: true });
+        let c = RunConfig { ground_snap_m, snap_flying_pixels, ..base };
         let whole = generate(&a, &c, None, None, None, &mut Quiet).unwrap();
         let part = generate(&b, &c, None, None, Some(4), &mut Quiet).unwrap();
         assert!(!part.finished && part.steps_this_run == 4, "{trajectory:?}");

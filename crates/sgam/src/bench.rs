@@ -139,9 +139,10 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
     let refiner = compact_refiner()?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
-    // generate's defaults: the ground prior on
+    // generate's defaults: the ground prior on, flying pixels snapped as generate does
     let config = sgam_pipeline::GeneratorConfig {
         ground_snap_m: Some(crate::generate::DEFAULT_GROUND_SNAP_M),
+        snap_flying_pixels: crate::generate::DEFAULT_FLYING_PIXELS == crate::generate::FlyingPixels::Snap,
         ..sgam_pipeline::clevr_generator_config(0)
     };
     let keyframes = sgam_pipeline::Keyframes::new(dir.path(), 1.0, 96);

@@ -109,6 +109,8 @@ pub fn run(a: &TableArgs) -> Result<()> {
             no_refine: row.no_refine,
             ground_snap: crate::generate::DEFAULT_GROUND_SNAP_M,
             cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
+            top_k: crate::generate::DEFAULT_TOP_K,
+            flying_pixels: crate::generate::DEFAULT_FLYING_PIXELS,
             paper: false,
             region_size: 5.0,
             out: Some(a.out.clone()),

@@ -73,6 +73,12 @@ pub struct WorldArgs {
     /// Missing latent cells the model draws per pass (see `sgam generate --help`).
     #[arg(long, default_value_t = crate::generate::DEFAULT_CELLS_PER_PASS)]
     pub cells_per_pass: usize,
+    /// Sample only among the model's K most likely codes (0 = all; see `sgam generate --help`).
+    #[arg(long, default_value_t = crate::generate::DEFAULT_TOP_K)]
+    pub top_k: usize,
+    /// Invented flying pixels: snapped to a surface or kept (see `sgam generate --help`).
+    #[arg(long, value_enum, default_value_t = crate::generate::DEFAULT_FLYING_PIXELS)]
+    pub flying_pixels: crate::generate::FlyingPixels,
     /// Ablation: no global map (warp from the previous frame only).
     #[arg(long)]
     pub no_map: bool,
@@ -120,9 +126,19 @@ impl WorldArgs {
             if self.cells_per_pass != crate::generate::DEFAULT_CELLS_PER_PASS {
                 label.push_str(&format!("-c{}", self.cells_per_pass));
             }
+            if self.top_k != crate::generate::DEFAULT_TOP_K {
+                label.push_str(&format!("-k{}", self.top_k));
+            }
         }
         if self.refiner != RefinerKind::Oracle && self.ground_snap > 0.0 {
             label.push_str(&format!("-g{}", self.ground_snap));
+        }
+        if self.refiner != RefinerKind::Oracle && self.flying_pixels != crate::generate::DEFAULT_FLYING_PIXELS {
+            let name = match self.flying_pixels {
+                crate::generate::FlyingPixels::Snap => "snap",
+                crate::generate::FlyingPixels::Keep => "keep",
+            };
+            label.push_str(&format!("-f{name}"));
         }
         if self.no_map {
             label.push_str("-nomap");
@@ -183,6 +199,8 @@ fn generate_args(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: us
         g.no_refine = args.no_refine;
         g.ground_snap = args.ground_snap;
         g.cells_per_pass = args.cells_per_pass;
+        g.top_k = args.top_k;
+        g.flying_pixels = args.flying_pixels;
     }
     g
 }
@@ -219,13 +237,15 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
                     && got.trajectory == want.trajectory
                     && got.no_map == want.no_map
                     && got.ground_snap_m == want.ground_snap_m
+                    && got.snap_flying_pixels == want.snap_flying_pixels
+                    && got.map == want.map
                     && without_model(&got.refiner) == without_model(&want.refiner)
             });
         if same {
             return Ok(dir);
         }
         bail!(
-            "{} holds a world grown with other options (steps, trajectory, step, temperature, cells per pass, ground prior or ablations); \
+            "{} holds a world grown with other options (steps, trajectory, step, temperature, cells per pass, top-k, ground prior, flying pixels, map or ablations); \
              remove it or choose another --out",
             dir.display()
         );
@@ -517,6 +537,8 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "trajectory": format!("{:?}", args.trajectory).to_lowercase(),
         "temperature": args.temperature,
         "ground_snap_m": args.ground_snap,
+        "flying_pixels": args.flying_pixels,
+        "top_k": args.top_k,
         "generated": gp, "oracle": op,
         "ratio_to_oracle": {
             "objects_per_100m2": ratio(gp.objects_per_100m2, op.objects_per_100m2),

@@ -49,6 +49,27 @@ pub const DEFAULT_TEMPERATURE: f32 = 1.3;
 /// take 3-4 passes instead of one, so the cells of one new object see each other's draws.
 pub const DEFAULT_CELLS_PER_PASS: usize = 8;
 
+/// What `sgam generate` does with invented flying pixels (docs/MODEL.md, session 11).
+pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
+
+/// `--flying-pixels`: invented pixels that hang between two surfaces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FlyingPixels {
+    /// Give each to the nearer surface or to the ground behind it.
+    Snap,
+    /// Fuse them as the refiner drew them.
+    Keep,
+}
+
+/// Snapshots written before `--flying-pixels` existed resume as they ran: keeping them.
+fn flying_pixels_before_session_11() -> FlyingPixels {
+    FlyingPixels::Keep
+}
+
+/// Default of `--top-k` (generate, eval world): 0, all codes (the trained distribution).
+pub const DEFAULT_TOP_K: usize = 0;
+
 fn default_cells_per_pass() -> usize {
     DEFAULT_CELLS_PER_PASS
 }
@@ -140,8 +161,16 @@ pub struct GenerateArgs {
     #[serde(default)]
     pub ground_snap: f32,
     /// Codes considered when sampling: the k nearest (0 = all, the calibrated distribution).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = DEFAULT_TOP_K)]
     pub top_k: usize,
+    /// Invented pixels that hang between two surfaces: where the refiner draws an object's
+    /// silhouette against the ground behind as a depth ramp, the ramp's pixels float in the air
+    /// and fuse into a sloped skirt around the object. `snap` gives each to the nearer surface
+    /// or to the ground plane behind (a 9x9 neighbourhood spanning over 5 % of the depth);
+    /// `keep` fuses them as drawn. The oracle's depth is never changed.
+    #[arg(long, value_enum, default_value_t = DEFAULT_FLYING_PIXELS)]
+    #[serde(default = "flying_pixels_before_session_11")]
+    pub flying_pixels: FlyingPixels,
     /// Iterative (MaskGIT-style) sampling: missing latent cells drawn per pass. A hole of more
     /// cells takes several passes (at most 4); each commits the most confident draws and
     /// re-encodes, so later cells see earlier ones. Larger = faster, less coherent.
@@ -434,6 +463,7 @@ pub fn resolve(args: &GenerateArgs) -> Result<RunConfig> {
         run_seed: args.seed,
         // the oracle is the true world: never snapped
         ground_snap_m: (args.ground_snap > 0.0 && args.refiner != RefinerKind::Oracle).then_some(args.ground_snap),
+        snap_flying_pixels: args.flying_pixels == FlyingPixels::Snap && args.refiner != RefinerKind::Oracle,
         outputs: OutputSettings {
             snapshot_every: args.snapshot_every,
             mesh_every: args.mesh_every,
@@ -585,8 +615,14 @@ mod tests {
         let c = resolve(&args).unwrap();
         c.validate().unwrap();
         assert_eq!(c.trajectory, TrajectorySpec::Zigzag { side: 30, step_m: 0.408 });
-        assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 10.0, 5));
+        assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 5.0, 5));
+        assert_eq!(c.map, sgam_pipeline::clevr_generator_config(0).tsdf, "generation and training share the map");
         assert_eq!(c.refiner, RefinerSpec::Null { fill: true });
+        // flying pixels are snapped by default, never the oracle's, and `keep` turns it off
+        assert!(c.snap_flying_pixels);
+        assert!(!resolve(&GenerateArgs::for_refiner(RefinerKind::Oracle, None, false)).unwrap().snap_flying_pixels);
+        let keep = GenerateArgs { flying_pixels: FlyingPixels::Keep, ..args.clone() };
+        assert!(!resolve(&keep).unwrap().snap_flying_pixels);
         let mut ge = args.clone();
         ge.seed_google_earth = Some("seed0".into());
         let c = resolve(&ge).unwrap();
