@@ -139,12 +139,10 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
     let refiner = compact_refiner()?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
-    // generate's defaults: the ground prior on, flying pixels snapped as generate does
-    let config = sgam_pipeline::GeneratorConfig {
-        ground_snap_m: Some(crate::generate::DEFAULT_GROUND_SNAP_M),
-        snap_flying_pixels: crate::generate::DEFAULT_FLYING_PIXELS == crate::generate::FlyingPixels::Snap,
-        ..sgam_pipeline::clevr_generator_config(0)
-    };
+    // the loop exactly as `sgam generate` resolves it by default (map, sources, ground prior,
+    // flying pixels)
+    let defaults = crate::generate::GenerateArgs::for_refiner(crate::generate::RefinerKind::Auto, None, false);
+    let config = crate::generate::resolve(&defaults)?.generator_config();
     let keyframes = sgam_pipeline::Keyframes::new(dir.path(), 1.0, 96);
     let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
     let (seed_cam, seed_frame) = &seq[0];

@@ -225,22 +225,20 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
                 dir.display()
             );
         }
-        let without_model = |r: &sgam_pipeline::RefinerSpec| match r {
-            sgam_pipeline::RefinerSpec::Model { options, .. } => {
-                sgam_pipeline::RefinerSpec::Model { model: None, options: *options }
-            }
-            other => other.clone(),
+        // the whole resolved run, but for the model file (the label names its weights) and what
+        // was written besides the frames: a new field of the run is compared without a change here
+        let comparable = |r: &sgam_pipeline::RunConfig| sgam_pipeline::RunConfig {
+            refiner: match &r.refiner {
+                sgam_pipeline::RefinerSpec::Model { options, .. } => {
+                    sgam_pipeline::RefinerSpec::Model { model: None, options: *options }
+                }
+                other => other.clone(),
+            },
+            outputs: want.outputs,
+            ..r.clone()
         };
         let same = run["steps"].as_u64() == Some(steps as u64)
-            && stored.is_some_and(|got| {
-                got.seed == want.seed
-                    && got.trajectory == want.trajectory
-                    && got.no_map == want.no_map
-                    && got.ground_snap_m == want.ground_snap_m
-                    && got.snap_flying_pixels == want.snap_flying_pixels
-                    && got.map == want.map
-                    && without_model(&got.refiner) == without_model(&want.refiner)
-            });
+            && stored.is_some_and(|got| comparable(&got) == comparable(&want));
         if same {
             return Ok(dir);
         }
