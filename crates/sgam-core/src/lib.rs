@@ -17,6 +17,7 @@ mod camera;
 mod colour;
 pub mod edges;
 mod error;
+pub mod freespace;
 pub mod ground;
 mod image;
 mod mesh;

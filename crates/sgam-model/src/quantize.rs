@@ -112,6 +112,79 @@ pub fn select_codes(
     out
 }
 
+/// Two-level sampling over a partition of the codebook into two classes (`plain[j]`: code `j`
+/// belongs to the plain class — for CLEVR, the grey ground — else to the coloured one).
+///
+/// In a missing row, the class is drawn with the probability the whole softmax at
+/// `temperature` gives it (so how often a cell starts an object is what plain temperature
+/// sampling gives), then the code within the class from the softmax at `within` over that
+/// class only. `within < temperature` sharpens the choice inside a class — the likeliest
+/// colours and shapes of an object, the likeliest ground — without changing how often each
+/// class is drawn; `within == temperature` is plain sampling at `temperature`; `within <= 0`
+/// takes the nearest code of the drawn class. Observed rows take the argmin. Returns the codes
+/// and, per row, the probability of the drawn code under this two-level distribution (1 for
+/// observed rows), the confidence iterative sampling commits by.
+#[allow(clippy::too_many_arguments)]
+pub fn select_codes_by_class(
+    dist: &[f32],
+    n: usize,
+    k: usize,
+    missing: &[bool],
+    temperature: f32,
+    within: f32,
+    plain: &[bool],
+    rng: &mut ChaCha8Rng,
+) -> (Vec<u32>, Vec<f32>) {
+    let mut codes = Vec::with_capacity(n);
+    let mut probs = Vec::with_capacity(n);
+    let t = temperature.max(1e-12) as f64;
+    for i in 0..n {
+        let row = &dist[i * k..(i + 1) * k];
+        let nearest = argmin(row);
+        if !missing.get(i).copied().unwrap_or(false) || temperature <= 0.0 {
+            codes.push(nearest as u32);
+            probs.push(1.0);
+            continue;
+        }
+        let in_plain = |j: usize| plain.get(j).copied().unwrap_or(false);
+        let dmin = row[nearest] as f64;
+        let mut mass = [0f64; 2];
+        for (j, &d) in row.iter().enumerate() {
+            mass[in_plain(j) as usize] += (-(d as f64 - dmin) / t).exp();
+        }
+        let total = mass[0] + mass[1];
+        let class = rng.random::<f64>() * total >= mass[0]; // true = plain
+        let p_class = mass[class as usize] / total.max(1e-300);
+        let members = (0..k).filter(|&j| in_plain(j) == class);
+        let (pick, p_within) = if within <= 0.0 {
+            let best = members.fold(None, |b: Option<usize>, j| match b {
+                Some(b) if row[b] <= row[j] => Some(b),
+                _ => Some(j),
+            });
+            (best.unwrap_or(nearest), 1.0)
+        } else {
+            let tw = within as f64;
+            let members: Vec<usize> = members.collect();
+            let cmin = members.iter().map(|&j| row[j] as f64).fold(f64::INFINITY, f64::min);
+            let weights: Vec<f64> = members.iter().map(|&j| (-(row[j] as f64 - cmin) / tw).exp()).collect();
+            let sum: f64 = weights.iter().sum();
+            let mut u = rng.random::<f64>() * sum;
+            let mut chosen = (members.first().copied().unwrap_or(nearest), weights.first().copied().unwrap_or(1.0));
+            for (&j, &w) in members.iter().zip(&weights) {
+                if u < w {
+                    chosen = (j, w);
+                    break;
+                }
+                u -= w;
+            }
+            (chosen.0, chosen.1 / sum.max(1e-300))
+        };
+        codes.push(pick as u32);
+        probs.push((p_class * p_within) as f32);
+    }
+    (codes, probs)
+}
+
 /// Quantizes the encoder output `z` `[B, D, h, w]` with the model's codebook.
 ///
 /// `missing_cells`: row-major `[B, h, w]` flags for temperature sampling (see [`Sampling`]).

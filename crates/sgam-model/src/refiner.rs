@@ -16,7 +16,7 @@ use crate::config::ModelConfig;
 use crate::model::VqModel;
 use crate::packing::{missing_cells, pack_input, unpack};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, WeightPrecision};
-use crate::quantize::{select_codes, squared_distances, to_host, Sampling};
+use crate::quantize::{select_codes, select_codes_by_class, squared_distances, to_host, Sampling};
 use crate::ModelError;
 
 /// Safetensors metadata key holding the [`ModelConfig`] JSON.
@@ -98,6 +98,12 @@ pub struct RefinerOptions {
     /// Iterative sampling: at most this many encode/decode passes per frame.
     #[serde(default = "default_max_passes")]
     pub max_passes: usize,
+    /// Two-level sampling (see [`crate::quantize::select_codes_by_class`]): a missing cell's
+    /// class (plain = grey ground codes, or coloured) is drawn at the sampling temperature, its
+    /// code within the class at this temperature (same units). `None`: plain temperature
+    /// sampling.
+    #[serde(default)]
+    pub within_class_temperature: Option<f32>,
 }
 
 fn default_cells_per_pass() -> usize {
@@ -121,6 +127,7 @@ impl Default for RefinerOptions {
             keep_observed: true,
             cells_per_pass: default_cells_per_pass(),
             max_passes: default_max_passes(),
+            within_class_temperature: None,
         }
     }
 }
@@ -136,6 +143,7 @@ pub struct VqRefiner {
     rng: ChaCha8Rng,
     device: Device,
     trace: SamplingTrace,
+    plain_codes: Option<Vec<bool>>,
 }
 
 /// What the last [`VqRefiner::complete_at`] call chose (for tests and diagnostics).
@@ -153,7 +161,7 @@ impl VqRefiner {
     /// Wraps a model.
     pub fn new(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device) -> Self {
         let rng = ChaCha8Rng::seed_from_u64(options.seed);
-        Self { model: model.valid(), config, options, rng, device, trace: SamplingTrace::default() }
+        Self { model: model.valid(), config, options, rng, device, trace: SamplingTrace::default(), plain_codes: None }
     }
 
     /// Loads from a safetensors file (+ optional config JSON file) on the default device.
@@ -239,6 +247,14 @@ impl VqRefiner {
         let sampler = (self.config.code_tau.is_some() || self.config.code_head)
             && matches!(sampling, Sampling::Temperature { .. });
         let n_missing = cells.iter().filter(|m| **m).count();
+        // two-level sampling: the within-class temperature in the same units as the sampling's
+        let within = match (sampler, self.options.within_class_temperature) {
+            (true, Some(t)) if n_missing > 0 => {
+                self.plain_codes()?;
+                Some(t * self.config.code_tau.unwrap_or(1.0))
+            }
+            _ => None,
+        };
         let passes = if sampler && n_missing > 0 {
             n_missing.div_ceil(self.options.cells_per_pass.max(1)).clamp(1, self.options.max_passes.max(1))
         } else {
@@ -265,7 +281,15 @@ impl VqRefiner {
                 }
             };
             let open: Vec<bool> = cells.iter().zip(&committed).map(|(m, c)| *m && c.is_none()).collect();
-            let drawn = select_codes(&dist, cells.len(), k, Some(&open), sampling, &mut self.rng);
+            let (drawn, drawn_p) = match (within, sampling) {
+                (Some(within), Sampling::Temperature { temperature, .. }) => {
+                    let plain = self.plain_codes.as_deref().unwrap_or(&[]);
+                    let (d, p) =
+                        select_codes_by_class(&dist, cells.len(), k, &open, temperature, within, plain, &mut self.rng);
+                    (d, Some(p))
+                }
+                _ => (select_codes(&dist, cells.len(), k, Some(&open), sampling, &mut self.rng), None),
+            };
             codes = drawn.iter().zip(&committed).map(|(d, c)| c.unwrap_or(*d)).collect();
             if pass + 1 == passes {
                 passes_log.push((0..cells.len()).filter(|&i| open[i]).collect());
@@ -275,7 +299,10 @@ impl VqRefiner {
             // confidence of each open cell's draw, its probability under the softmax
             let mut conf: Vec<(f32, usize)> = (0..cells.len())
                 .filter(|&i| open[i])
-                .map(|i| (draw_probability(&dist[i * k..(i + 1) * k], drawn[i] as usize, temperature), i))
+                .map(|i| match &drawn_p {
+                    Some(p) => (p[i], i),
+                    None => (draw_probability(&dist[i * k..(i + 1) * k], drawn[i] as usize, temperature), i),
+                })
                 .collect();
             let n_commit = conf.len().div_ceil(passes - pass);
             conf.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
@@ -308,6 +335,40 @@ impl VqRefiner {
         Ok(out)
     }
 
+    /// Which codes are plain (grey: CLEVR's ground) rather than coloured, for two-level
+    /// sampling: each code is decoded alone as a uniform 4x4-cell patch and counted plain when
+    /// the mean HSV saturation of its centre 2x2 cells is below [`PLAIN_CODE_SATURATION`].
+    /// Computed once per refiner (64 codes per decoder call).
+    pub fn plain_codes(&mut self) -> Result<&[bool], ModelError> {
+        if self.plain_codes.is_none() {
+            let k = self.config.n_embed;
+            let f = self.config.downsample_factor();
+            let (g, batch) = (4usize, 64usize);
+            let mut plain = Vec::with_capacity(k);
+            for start in (0..k).step_by(batch) {
+                let codes: Vec<u32> = (start..(start + batch).min(k)).map(|c| c as u32).collect();
+                let b = codes.len();
+                let idx: Vec<u32> = codes.iter().flat_map(|&c| std::iter::repeat_n(c, g * g)).collect();
+                let rows = self.model.quantize.lookup(&idx, &self.device);
+                let [_, d] = rows.dims();
+                let z_q = rows.reshape([b, g, g, d]).permute([0, 3, 1, 2]);
+                for frame in unpack(self.model.decode(z_q), &self.config.depth)? {
+                    let w = frame.width() as usize;
+                    let (mut sum, mut n) = (0.0f32, 0.0f32);
+                    for y in f..(g - 1) * f {
+                        for x in f..(g - 1) * f {
+                            sum += saturation(frame.colour.data[y * w + x]);
+                            n += 1.0;
+                        }
+                    }
+                    plain.push(sum / n.max(1.0) < PLAIN_CODE_SATURATION);
+                }
+            }
+            self.plain_codes = Some(plain);
+        }
+        Ok(self.plain_codes.as_deref().unwrap_or(&[]))
+    }
+
     /// Decodes one code per latent cell (row-major `[h, w]`) into a frame.
     fn decode_codes(&self, codes: &[u32], h: usize, w: usize) -> Result<RgbdFrame, ModelError> {
         let rows = self.model.quantize.lookup(codes, &self.device);
@@ -316,6 +377,23 @@ impl VqRefiner {
         unpack(self.model.decode(z_q), &self.config.depth)?
             .pop()
             .ok_or_else(|| ModelError::Input("empty output".into()))
+    }
+}
+
+/// Saturation below which a decoded code counts as plain (see [`VqRefiner::plain_codes`]). On
+/// the bundled model the decoded saturations of its 1,024 codes split into 557 below 0.03
+/// (all of them codes the frozen encoder gives to grey cells of real frames) and a spread of
+/// coloured ones above (docs/MODEL.md, session 12).
+pub const PLAIN_CODE_SATURATION: f32 = 0.03;
+
+/// HSV saturation `(max - min) / max` of a linear RGB colour in [0, 1] (0 for black).
+fn saturation(c: [f32; 3]) -> f32 {
+    let hi = c[0].max(c[1]).max(c[2]);
+    let lo = c[0].min(c[1]).min(c[2]);
+    if hi <= 1e-6 {
+        0.0
+    } else {
+        (hi - lo) / hi
     }
 }
 

@@ -11,7 +11,7 @@ use sgam_model::decoder_tune::{DecoderTuneConfig, DecoderTuner};
 use sgam_model::generative::{reveal_cells, target_codes, CodePair, CodeTrainConfig, CodeTrainer};
 use sgam_model::packing::{pack_input, pack_values};
 use sgam_model::params::{named_tensors, NamedTensor};
-use sgam_model::quantize::{quantize, select_codes};
+use sgam_model::quantize::{quantize, select_codes, select_codes_by_class};
 use sgam_model::{default_device, ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
 
 fn frame(w: u32, h: u32, seed: u64) -> RgbdFrame {
@@ -102,6 +102,98 @@ fn temperature_sampling_follows_the_softmax_of_the_distances() {
         &mut rng,
     );
     assert!(kept.iter().all(|&c| c == 1));
+}
+
+/// Chi-square statistic of `drawn` against the expected probabilities `p` of each code.
+fn chi_square(drawn: &[u32], p: &[f64]) -> f64 {
+    let n = drawn.len() as f64;
+    p.iter()
+        .enumerate()
+        .filter(|(_, p)| **p > 0.0)
+        .map(|(j, p)| {
+            let observed = drawn.iter().filter(|&&c| c as usize == j).count() as f64;
+            (observed - n * p).powi(2) / (n * p)
+        })
+        .sum()
+}
+
+#[test]
+fn two_level_sampling_draws_the_class_at_the_temperature_and_the_code_at_the_within_temperature() {
+    // 6 codes; 1, 4 and 5 are plain (ground), the rest coloured
+    let dist = [0.3f32, 0.0, 0.9, 0.5, 2.0, 0.1];
+    let plain = [false, true, false, false, true, true];
+    let (n, k) = (20_000usize, dist.len());
+    let table: Vec<f32> = (0..n).flat_map(|_| dist).collect();
+    let missing = vec![true; n];
+    let softmax = |t: f64, members: &dyn Fn(usize) -> bool| -> Vec<f64> {
+        let w: Vec<f64> = (0..k).map(|j| if members(j) { (-(dist[j] as f64) / t).exp() } else { 0.0 }).collect();
+        let z: f64 = w.iter().sum();
+        w.iter().map(|x| x / z).collect()
+    };
+    let (t, within) = (0.8f64, 0.3f64);
+    let whole = softmax(t, &|_| true);
+    let p_plain: f64 = (0..k).filter(|&j| plain[j]).map(|j| whole[j]).sum();
+    let in_plain = softmax(within, &|j| plain[j]);
+    let in_coloured = softmax(within, &|j| !plain[j]);
+    let expected: Vec<f64> =
+        (0..k).map(|j| if plain[j] { p_plain * in_plain[j] } else { (1.0 - p_plain) * in_coloured[j] }).collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let (drawn, probs) = select_codes_by_class(&table, n, k, &missing, t as f32, within as f32, &plain, &mut rng);
+    // 5 degrees of freedom: the 0.1 % critical value is 20.5
+    let chi2 = chi_square(&drawn, &expected);
+    assert!(chi2 < 20.5, "chi-square {chi2:.2}");
+    // the class keeps the whole softmax's share: how often objects start does not change
+    let plain_share = drawn.iter().filter(|&&c| plain[c as usize]).count() as f64 / n as f64;
+    assert!((plain_share - p_plain).abs() < 0.015, "plain drawn {plain_share:.3}, softmax gives {p_plain:.3}");
+    // each draw reports its probability under the two-level distribution
+    for (c, p) in drawn.iter().zip(&probs).take(50) {
+        assert!((*p as f64 - expected[*c as usize]).abs() < 1e-5, "code {c}: {p} vs {}", expected[*c as usize]);
+    }
+    // within = temperature is plain temperature sampling
+    let (same, _) = select_codes_by_class(&table, n, k, &missing, t as f32, t as f32, &plain, &mut rng);
+    let chi2 = chi_square(&same, &whole);
+    assert!(chi2 < 20.5, "within = T: chi-square {chi2:.2}");
+    // within -> 0 takes the nearest code of the drawn class: codes 1 (plain) and 0 (coloured)
+    let (cold, _) = select_codes_by_class(&table, n, k, &missing, t as f32, 0.0, &plain, &mut rng);
+    assert!(cold.iter().all(|&c| c == 1 || c == 0));
+    let cold_plain = cold.iter().filter(|&&c| c == 1).count() as f64 / n as f64;
+    assert!((cold_plain - p_plain).abs() < 0.015, "{cold_plain:.3} vs {p_plain:.3}");
+    // observed rows take the argmin
+    let (kept, p) = select_codes_by_class(&table, n, k, &vec![false; n], t as f32, within as f32, &plain, &mut rng);
+    assert!(kept.iter().all(|&c| c == 1) && p.iter().all(|&p| p == 1.0));
+}
+
+#[test]
+fn two_level_iterative_sampling_commits_every_missing_cell_once_and_keeps_observed_pixels() {
+    let device = default_device();
+    let cfg = ModelConfig { code_tau: Some(0.5), ..ModelConfig::tiny() };
+    let model = VqModel::new(&cfg, 5, &device).unwrap();
+    let options = RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        cells_per_pass: 5,
+        within_class_temperature: Some(0.5),
+        ..RefinerOptions::default()
+    };
+    let mut r = VqRefiner::new(model, cfg.clone(), options, device);
+    let plain = r.plain_codes().unwrap().to_vec();
+    assert_eq!(plain.len(), cfg.n_embed);
+    let (w, h) = (32u32, 32u32);
+    let f = frame(w, h, 4);
+    let missing: Vec<bool> = (0..w * h).map(|p| (4..24).contains(&(p % w)) && (8..20).contains(&(p / w))).collect();
+    let out = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
+    let trace = r.trace().clone();
+    let expected: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
+    assert_eq!(expected.len(), 15);
+    assert_eq!(trace.passes.len(), 3, "{:?}", trace.passes);
+    let mut all: Vec<usize> = trace.passes.concat();
+    all.sort_unstable();
+    assert_eq!(all, expected, "every missing cell committed exactly once");
+    for (i, m) in missing.iter().enumerate() {
+        if !m {
+            assert_eq!(out.colour.data[i], f.colour.data[i]);
+            assert_eq!(out.depth_m.data[i], f.depth_m.data[i]);
+        }
+    }
 }
 
 #[test]

@@ -68,6 +68,10 @@ pub struct RunConfig {
     /// runs written before it existed read as off.
     #[serde(default)]
     pub snap_flying_pixels: bool,
+    /// Invented pixels that earlier views saw through are grounded or dropped
+    /// ([`GeneratorConfig::carve_free_space`]); runs written before it existed read as off.
+    #[serde(default)]
+    pub carve_free_space: bool,
 }
 
 impl RunConfig {
@@ -81,6 +85,7 @@ impl RunConfig {
             no_map: self.no_map,
             ground_snap_m: self.ground_snap_m,
             snap_flying_pixels: self.snap_flying_pixels,
+            carve_free_space: self.carve_free_space,
             ..clevr_generator_config(self.run_seed)
         }
     }

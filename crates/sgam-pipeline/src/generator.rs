@@ -4,6 +4,7 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 use sgam_core::edges::{snap_flying_pixels, FlyingPixelConfig};
+use sgam_core::freespace::{carve_invented, FreeSpaceConfig};
 use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
@@ -35,6 +36,10 @@ pub struct GeneratorConfig {
     /// are given to the nearer surface or to the ground behind, before the ground prior
     /// ([`sgam_core::edges::snap_flying_pixels`]). Off = the refiner's depth as it is.
     pub snap_flying_pixels: bool,
+    /// Invented pixels that the seed frame or a source saw through (free space the map does not
+    /// store) go to the ground plane behind them, or are dropped, after the flying pixels and
+    /// before the ground prior ([`sgam_core::freespace::carve_invented`]).
+    pub carve_free_space: bool,
 }
 
 /// The loop's parameters for the CLEVR-Infinite world: the [`crate::seeds::CLEVR`] preset's voxels,
@@ -60,6 +65,7 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         seed,
         ground_snap_m: None,
         snap_flying_pixels: false,
+        carve_free_space: false,
     }
 }
 
@@ -200,6 +206,18 @@ impl<R: Refiner> WorldGenerator<R> {
             let plane = self.ground_plane()?;
             let cfg = FlyingPixelConfig::new(self.config.tsdf.depth_max_m);
             snap_flying_pixels(&mut frame, &guidance.missing, camera, plane.as_ref(), &cfg);
+        }
+        if self.config.carve_free_space {
+            let plane = self.ground_plane()?;
+            // the sources and the seed frame, the one real view
+            let seed = match self.keyframes.cameras().first().copied() {
+                Some(c) if !sources.iter().any(|(s, _)| *s == c) => Some((c, self.keyframes.frame(0)?)),
+                _ => None,
+            };
+            let views: Vec<(&Camera, &RgbdFrame)> =
+                sources.iter().chain(seed.iter()).map(|(c, f)| (c, f.as_ref())).collect();
+            let cfg = FreeSpaceConfig::new(self.config.tsdf.depth_max_m);
+            carve_invented(&mut frame, &guidance.missing, camera, &views, plane.as_ref(), &cfg);
         }
         if let Some(tolerance_m) = self.config.ground_snap_m {
             if let Some(plane) = self.ground_plane()? {

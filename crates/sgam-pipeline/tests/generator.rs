@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use sgam_core::{Camera, Vec3};
+use sgam_core::{Camera, RgbdFrame, Vec3};
 use sgam_pipeline::run::generate;
 use sgam_pipeline::snapshot::{read_snapshot, SNAPSHOT_FILE, SNAPSHOT_VERSION};
 use sgam_pipeline::{
@@ -35,6 +35,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
         },
         ground_snap_m: None,
         snap_flying_pixels: false,
+        carve_free_space: false,
     }
 }
 
@@ -105,14 +106,14 @@ fn map_bytes(map: &sgam_map::TsdfMap) -> Vec<u8> {
 fn interrupted_then_resumed_run_equals_uninterrupted_run_for_both_pose_sources() {
     // the ground prior's plane is fitted lazily from keyframe 0: a resumed run must refit the
     // same plane, so the third case runs with it on (and with the flying pixels snapped, which
-    // use the plane too)
+    // use the plane too, and free space carved, which reads the seed keyframe back)
     let greedy = TrajectorySpec::Greedy { side: 4, step_m: 0.408 };
     let cases = [(zigzag(10), None, false), (greedy, None, false), (zigzag(10), Some(0.8), true)];
-    for (trajectory, ground_snap_m, snap_flying_pixels) in cases {
+    for (trajectory, ground_snap_m, snap) in cases {
         let tmp = tempfile::tempdir().unwrap();
         let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
         let base = config(48, 10, trajectory.clone(), RefinerSpec::Null { fill: true });
-        let c = RunConfig { ground_snap_m, snap_flying_pixels, ..base };
+        let c = RunConfig { ground_snap_m, snap_flying_pixels: snap, carve_free_space: snap, ..base };
         let whole = generate(&a, &c, None, None, None, &mut Quiet).unwrap();
         let part = generate(&b, &c, None, None, Some(4), &mut Quiet).unwrap();
         assert!(!part.finished && part.steps_this_run == 4, "{trajectory:?}");
@@ -198,4 +199,67 @@ fn revisiting_the_seed_pose_from_a_pose_file_reproduces_the_seed_frame() {
     let last = run.generator.keyframes.frame(6).unwrap();
     let psnr = sgam_metrics::psnr(&first.colour, &last.colour, None).unwrap();
     assert!(psnr >= 30.0, "revisit PSNR {psnr:.2} dB");
+}
+
+/// A refiner that invents a surface `depth_m` ahead in every missing pixel.
+struct NearWall {
+    depth_m: f32,
+}
+
+impl sgam_core::Refiner for NearWall {
+    type Error = std::convert::Infallible;
+
+    fn refine(&mut self, g: &sgam_core::Guidance) -> Result<RgbdFrame, Self::Error> {
+        let mut f = g.frame.clone();
+        for (d, m) in f.depth_m.data.iter_mut().zip(&g.missing) {
+            if *m {
+                *d = self.depth_m;
+            }
+        }
+        Ok(f)
+    }
+}
+
+#[test]
+fn carving_keeps_invented_surfaces_out_of_the_space_the_seed_saw_empty() {
+    // the seed sees a wall 8 m ahead on its left half and empty space to 30 m (beyond the map's
+    // 20 m) on its right; back at the seed pose, the refiner invents a wall 3 m ahead wherever
+    // the map shows nothing
+    let (res, seed_cam) = (32u32, sgam_pipeline::synthetic_seed_camera(32));
+    let seed = RgbdFrame {
+        colour: sgam_core::Image::filled(res, res, [0.5; 3]),
+        depth_m: sgam_core::Image {
+            width: res,
+            height: res,
+            data: (0..res * res).map(|i| if i % res < res / 2 { 8.0 } else { 30.0 }).collect(),
+        },
+    };
+    let nearest_surface = |carve: bool| -> f32 {
+        let tmp = tempfile::tempdir().unwrap();
+        let config = sgam_pipeline::GeneratorConfig { carve_free_space: carve, ..clevr_generator_config(0) };
+        let keyframes = sgam_pipeline::Keyframes::new(tmp.path(), config.source_radius_m, 4);
+        let mut gen = sgam_pipeline::WorldGenerator::new(
+            sgam_map::TsdfMap::new(config.tsdf),
+            keyframes,
+            NearWall { depth_m: 3.0 },
+            config,
+        );
+        gen.seed(&seed_cam, seed.clone()).unwrap();
+        gen.step(&seed_cam).unwrap();
+        // the map's nearest vertex in the seed's view
+        let from_world = seed_cam.world_from_camera.inverse();
+        let mesh = gen.map.extract_mesh();
+        mesh.positions
+            .iter()
+            .filter_map(|p| seed_cam.project_world(&from_world, *p))
+            .filter(|(uv, z)| *z > 0.0 && seed_cam.intrinsics.contains(*uv))
+            .map(|(_, z)| z)
+            .fold(f32::INFINITY, f32::min)
+    };
+    // without carving the invented wall stands 3 m ahead, in space the seed saw empty
+    let kept = nearest_surface(false);
+    assert!(kept < 4.0, "control: nearest surface {kept} m");
+    // with it, nothing is nearer than the seed's own wall
+    let carved = nearest_surface(true);
+    assert!(carved > 7.0, "nearest surface {carved} m");
 }

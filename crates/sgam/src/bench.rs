@@ -79,18 +79,12 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
     (sgam_metrics::median(ms).unwrap_or(0.0), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
-/// The bundled compact model with `sgam generate`'s default sampling (default T over all codes;
-/// iterative passes for large holes), for timing.
+/// The bundled compact model with `sgam generate`'s default sampling (the refiner `sgam
+/// generate` builds with no options), for timing.
 fn compact_refiner() -> Result<sgam_model::VqRefiner> {
-    let options = sgam_model::RefinerOptions {
-        sampling: sgam_model::Sampling::Temperature {
-            temperature: crate::generate::DEFAULT_TEMPERATURE,
-            top_k: usize::MAX,
-        },
-        cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
-        ..Default::default()
-    };
-    Ok(sgam_model::VqRefiner::from_bytes(sgam_pipeline::BUNDLED_MODEL, None, options)?)
+    let defaults = crate::generate::GenerateArgs::for_refiner(crate::generate::RefinerKind::Auto, None, false);
+    crate::generate::model_refiner(crate::generate::RefinerKind::Auto, &defaults)?
+        .ok_or_else(|| anyhow::anyhow!("the default refiner is not the model"))
 }
 
 fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Value) {

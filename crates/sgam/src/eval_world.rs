@@ -76,9 +76,15 @@ pub struct WorldArgs {
     /// Sample only among the model's K most likely codes (0 = all; see `sgam generate --help`).
     #[arg(long, default_value_t = crate::generate::DEFAULT_TOP_K)]
     pub top_k: usize,
+    /// Two-level sampling's within-class temperature (0 = off; see `sgam generate --help`).
+    #[arg(long, default_value_t = crate::generate::DEFAULT_WITHIN_TEMPERATURE)]
+    pub within_temperature: f32,
     /// Invented flying pixels: snapped to a surface or kept (see `sgam generate --help`).
     #[arg(long, value_enum, default_value_t = crate::generate::DEFAULT_FLYING_PIXELS)]
     pub flying_pixels: crate::generate::FlyingPixels,
+    /// Invented pixels in space earlier views saw empty: carved or kept (see `sgam generate --help`).
+    #[arg(long, value_enum, default_value_t = crate::generate::DEFAULT_FREE_SPACE)]
+    pub free_space: crate::generate::FreeSpace,
     /// Ablation: no global map (warp from the previous frame only).
     #[arg(long)]
     pub no_map: bool,
@@ -129,6 +135,10 @@ impl WorldArgs {
             if self.top_k != crate::generate::DEFAULT_TOP_K {
                 label.push_str(&format!("-k{}", self.top_k));
             }
+            // always named when on, so worlds grown before it existed keep their folder
+            if self.within_temperature > 0.0 {
+                label.push_str(&format!("-w{}", self.within_temperature));
+            }
         }
         if self.refiner != RefinerKind::Oracle && self.ground_snap > 0.0 {
             label.push_str(&format!("-g{}", self.ground_snap));
@@ -139,6 +149,10 @@ impl WorldArgs {
                 crate::generate::FlyingPixels::Keep => "keep",
             };
             label.push_str(&format!("-f{name}"));
+        }
+        // always named when on, so worlds grown before it existed keep their folder
+        if self.refiner != RefinerKind::Oracle && self.free_space == crate::generate::FreeSpace::Carve {
+            label.push_str("-carve");
         }
         if self.no_map {
             label.push_str("-nomap");
@@ -200,7 +214,9 @@ fn generate_args(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: us
         g.ground_snap = args.ground_snap;
         g.cells_per_pass = args.cells_per_pass;
         g.top_k = args.top_k;
+        g.within_temperature = args.within_temperature;
         g.flying_pixels = args.flying_pixels;
+        g.free_space = args.free_space;
     }
     g
 }
@@ -536,7 +552,9 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "temperature": args.temperature,
         "ground_snap_m": args.ground_snap,
         "flying_pixels": args.flying_pixels,
+        "free_space": args.free_space,
         "top_k": args.top_k,
+        "within_temperature": args.within_temperature,
         "generated": gp, "oracle": op,
         "ratio_to_oracle": {
             "objects_per_100m2": ratio(gp.objects_per_100m2, op.objects_per_100m2),

@@ -69,6 +69,31 @@ fn flying_pixels_before_session_11() -> FlyingPixels {
     FlyingPixels::Keep
 }
 
+/// Default of `--within-temperature` (generate, eval world, eval table, bench): chosen on
+/// training seeds 11-14 between 0 (off), 1.0, 0.6 and 0.4 (docs/MODEL.md, session 12). The
+/// class of a missing cell keeps T = 1.3's odds, the code within it is drawn at 0.6: the objects'
+/// colour saturation went from 0.62x to 0.89x of the true world's and KID from 0.028 to 0.010.
+pub const DEFAULT_WITHIN_TEMPERATURE: f32 = 0.6;
+
+/// What `sgam generate` does with invented pixels earlier views saw through (docs/MODEL.md,
+/// session 12).
+pub const DEFAULT_FREE_SPACE: FreeSpace = FreeSpace::Carve;
+
+/// `--free-space`: invented pixels in space the seed frame or a source saw as empty.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FreeSpace {
+    /// Put each on the ground plane behind it, or drop it (not fused).
+    Carve,
+    /// Fuse them as the refiner drew them.
+    Keep,
+}
+
+/// Snapshots written before `--free-space` existed resume as they ran: keeping them.
+fn free_space_before_session_12() -> FreeSpace {
+    FreeSpace::Keep
+}
+
 /// Default of `--top-k` (generate, eval world): 0, all codes (the trained distribution).
 pub const DEFAULT_TOP_K: usize = 0;
 
@@ -165,6 +190,13 @@ pub struct GenerateArgs {
     /// Codes considered when sampling: the k nearest (0 = all, the calibrated distribution).
     #[arg(long, default_value_t = DEFAULT_TOP_K)]
     pub top_k: usize,
+    /// Two-level sampling (0 = off): a missing cell first draws its class — plain (the grey
+    /// ground's codes) or coloured (objects) — at --temperature, so objects start as often as
+    /// before, then its code within that class at this lower temperature: the likeliest
+    /// colours and shapes, the likeliest ground. Overrides --top-k.
+    #[arg(long, default_value_t = DEFAULT_WITHIN_TEMPERATURE)]
+    #[serde(default)]
+    pub within_temperature: f32,
     /// Invented pixels that hang between two surfaces: where the refiner draws an object's
     /// silhouette against the ground behind as a depth ramp, the ramp's pixels float in the air
     /// and fuse into a sloped skirt around the object. `snap` gives each to the nearer surface
@@ -173,6 +205,15 @@ pub struct GenerateArgs {
     #[arg(long, value_enum, default_value_t = DEFAULT_FLYING_PIXELS)]
     #[serde(default = "flying_pixels_before_session_11")]
     pub flying_pixels: FlyingPixels,
+    /// Invented pixels in space that an earlier view saw as empty: the map keeps only a band
+    /// around surfaces, so a ray through space the seed frame saw empty can come back missing,
+    /// and the refiner may put an object there, in front of what the seed saw. `carve` checks
+    /// every invented pixel against the seed frame and the step's sources and puts one they
+    /// saw through on the ground plane behind it (or drops it); `keep` fuses them as drawn.
+    /// The oracle's depth is never changed.
+    #[arg(long, value_enum, default_value_t = DEFAULT_FREE_SPACE)]
+    #[serde(default = "free_space_before_session_12")]
+    pub free_space: FreeSpace,
     /// Iterative (MaskGIT-style) sampling: missing latent cells drawn per pass. A hole of more
     /// cells takes several passes (at most 4); each commits the most confident draws and
     /// re-encodes, so later cells see earlier ones. Larger = faster, less coherent.
@@ -294,6 +335,7 @@ impl GenerateArgs {
         in_range("--temperature", self.temperature, 0.0..=100.0)?;
         in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
         in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
+        in_range("--within-temperature", self.within_temperature, 0.0..=100.0)?;
         in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
         if let Some(k) = self.k_sources {
             in_range("--k-sources", k, 1..=64)?;
@@ -466,6 +508,7 @@ pub fn resolve(args: &GenerateArgs) -> Result<RunConfig> {
         // the oracle is the true world: never snapped
         ground_snap_m: (args.ground_snap > 0.0 && args.refiner != RefinerKind::Oracle).then_some(args.ground_snap),
         snap_flying_pixels: args.flying_pixels == FlyingPixels::Snap && args.refiner != RefinerKind::Oracle,
+        carve_free_space: args.free_space == FreeSpace::Carve && args.refiner != RefinerKind::Oracle,
         outputs: OutputSettings {
             snapshot_every: args.snapshot_every,
             mesh_every: args.mesh_every,
@@ -489,6 +532,7 @@ pub fn refiner_spec(args: &GenerateArgs) -> RefinerSpec {
                 seed: args.seed,
                 keep_observed: !args.regenerate_observed,
                 cells_per_pass: args.cells_per_pass,
+                within_class_temperature: (args.within_temperature > 0.0).then_some(args.within_temperature),
                 ..Default::default()
             },
         },
@@ -625,6 +669,11 @@ mod tests {
         assert!(!resolve(&GenerateArgs::for_refiner(RefinerKind::Oracle, None, false)).unwrap().snap_flying_pixels);
         let keep = GenerateArgs { flying_pixels: FlyingPixels::Keep, ..args.clone() };
         assert!(!resolve(&keep).unwrap().snap_flying_pixels);
+        // free space is carved by default, never the oracle's, and `keep` turns it off
+        assert!(c.carve_free_space);
+        assert!(!resolve(&GenerateArgs::for_refiner(RefinerKind::Oracle, None, false)).unwrap().carve_free_space);
+        let keep = GenerateArgs { free_space: FreeSpace::Keep, ..args.clone() };
+        assert!(!resolve(&keep).unwrap().carve_free_space);
         let mut ge = args.clone();
         ge.seed_google_earth = Some("seed0".into());
         let c = resolve(&ge).unwrap();

@@ -319,6 +319,8 @@ fn bad_options_are_refused_before_work_naming_the_option() {
         (gen(&["--ground-snap", "NaN"]), "--ground-snap NaN"),
         (gen(&["--ground-snap=-0.5"]), "--ground-snap -0.5"),
         (gen(&["--top-k", "10000000"]), "--top-k"),
+        (gen(&["--within-temperature", "NaN"]), "--within-temperature NaN"),
+        (gen(&["--within-temperature=-1"]), "--within-temperature -1"),
         (gen(&["--k-sources", "0"]), "--k-sources 0"),
         (gen(&["--source-radius=-1"]), "--source-radius -1"),
         (gen(&["--source-radius", "NaN"]), "--source-radius NaN"),
