@@ -116,6 +116,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
             paper: false,
             region_size: 5.0,
             out: Some(a.out.clone()),
+            keep_snapshots: false,
             json: true,
         };
         let world = crate::eval_world::evaluate(&wa)?;

@@ -100,6 +100,11 @@ pub struct WorldArgs {
     /// Folder for the worlds (default runs/eval-world).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Keep each finished world's resume files (snapshot.bin, map.bin: half of a world's 360 MB).
+    /// By default they are deleted once the world is finished: a finished world is reused from
+    /// its mesh, frames and run.json, and never resumed.
+    #[arg(long)]
+    pub keep_snapshots: bool,
     /// Print only the JSON line.
     #[arg(long)]
     pub json: bool,
@@ -256,10 +261,13 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
         let same = run["steps"].as_u64() == Some(steps as u64)
             && stored.is_some_and(|got| comparable(&got) == comparable(&want));
         if same {
+            if !args.keep_snapshots {
+                drop_resume_files(&dir)?;
+            }
             return Ok(dir);
         }
         bail!(
-            "{} holds a world grown with other options (steps, trajectory, step, temperature, cells per pass, top-k, ground prior, flying pixels, map or ablations); \
+            "{} holds a world grown with other options (steps, trajectory, step, temperature, cells per pass, top-k, within-class temperature, ground prior, flying pixels, free space, map or ablations); \
              remove it or choose another --out",
             dir.display()
         );
@@ -269,14 +277,34 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
         g.resume = Some(dir.clone());
         g.no_video = true;
         crate::generate::run(g)?;
-        return Ok(dir);
+    } else {
+        let mut g = generate_args(args, kind, seed_scene, steps);
+        g.out = Some(dir.clone());
+        g.trajectory = args.trajectory;
+        g.step = args.step;
+        crate::generate::run(g)?;
     }
-    let mut g = generate_args(args, kind, seed_scene, steps);
-    g.out = Some(dir.clone());
-    g.trajectory = args.trajectory;
-    g.step = args.step;
-    crate::generate::run(g)?;
+    if !args.keep_snapshots {
+        drop_resume_files(&dir)?;
+    }
     Ok(dir)
+}
+
+/// Deletes a finished world's resume files (its snapshot and map); the world stays reusable
+/// from its mesh, frames and run.json.
+fn drop_resume_files(dir: &Path) -> Result<()> {
+    if !dir.join("mesh.ply").exists() {
+        return Ok(());
+    }
+    for name in [sgam_pipeline::snapshot::SNAPSHOT_FILE, "map.bin"] {
+        match std::fs::remove_file(dir.join(name)) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(e).with_context(|| format!("{}: cannot delete {name}", dir.display()))
+            }
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 /// Steps of the loop trajectory of the consistency check.

@@ -40,6 +40,11 @@ fn the_oracle_judged_against_itself_is_identical_and_the_null_fill_is_not() {
         .collect();
     assert_eq!(null_worlds.len(), 1, "{null_worlds:?}");
     assert!(seed_dir.join(&null_worlds[0]).join("mesh.ply").exists());
+    // finished worlds keep what reuse needs, not their resume files
+    for world in [seed_dir.join(&null_worlds[0]), seed_dir.join("oracle")] {
+        assert!(world.join("run.json").exists() && world.join("rgb").exists(), "{}", world.display());
+        assert!(!world.join("snapshot.bin").exists() && !world.join("map.bin").exists(), "{}", world.display());
+    }
     // the plain-text summary names the bars
     let text = ok(&[&common_args[..8], &["--refiner", "null"]].concat());
     assert!(text.contains("objects per 100 m2") && text.contains("(bar 0.5-1.5x)"), "{text}");
