@@ -17,6 +17,7 @@
 use glam::Vec2;
 
 use crate::ground::GroundPlane;
+use crate::image::marked_depths;
 use crate::{is_valid_depth, Camera, RgbdFrame};
 
 /// Parameters of [`snap_flying_pixels`].
@@ -55,39 +56,29 @@ pub fn snap_flying_pixels(
     let (r, rel) = (cfg.radius_px, cfg.max_relative_range);
     let depth = &frame.depth_m;
     let mut moves = Vec::new();
-    for v in 0..h {
-        for u in 0..w {
-            let i = (v * w + u) as usize;
-            if !missing.get(i).copied().unwrap_or(false) {
-                continue;
-            }
-            let d = *depth.at(u, v);
-            if !is_valid_depth(d) {
-                continue;
-            }
-            let (mut lo, mut hi) = (d, d);
-            for y in v.saturating_sub(r)..=(v + r).min(h - 1) {
-                for x in u.saturating_sub(r)..=(u + r).min(w - 1) {
-                    let e = *depth.at(x, y);
-                    if is_valid_depth(e) {
-                        (lo, hi) = (lo.min(e), hi.max(e));
-                    }
+    for (u, v, i, d) in marked_depths(depth, missing) {
+        let (mut lo, mut hi) = (d, d);
+        for y in v.saturating_sub(r)..=(v + r).min(h - 1) {
+            for x in u.saturating_sub(r)..=(u + r).min(w - 1) {
+                let e = *depth.at(x, y);
+                if is_valid_depth(e) {
+                    (lo, hi) = (lo.min(e), hi.max(e));
                 }
             }
-            if hi - lo <= rel * d {
-                continue;
-            }
-            let to = if d - lo <= hi - d {
-                lo
-            } else {
-                let ground = plane
-                    .and_then(|p| p.depth_at(camera, Vec2::new(u as f32, v as f32)))
-                    .filter(|g| *g <= cfg.max_depth_m && hi > g * (1.0 - rel));
-                ground.unwrap_or(hi)
-            };
-            if to != d {
-                moves.push((i, to));
-            }
+        }
+        if hi - lo <= rel * d {
+            continue;
+        }
+        let to = if d - lo <= hi - d {
+            lo
+        } else {
+            let ground = plane
+                .and_then(|p| p.depth_at(camera, Vec2::new(u as f32, v as f32)))
+                .filter(|g| *g <= cfg.max_depth_m && hi > g * (1.0 - rel));
+            ground.unwrap_or(hi)
+        };
+        if to != d {
+            moves.push((i, to));
         }
     }
     for &(i, to) in &moves {

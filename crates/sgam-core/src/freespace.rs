@@ -15,6 +15,7 @@
 use glam::Vec2;
 
 use crate::ground::GroundPlane;
+use crate::image::marked_depths;
 use crate::{is_valid_depth, Camera, RgbdFrame, Rigid3};
 
 /// Parameters of [`carve_invented`].
@@ -92,35 +93,23 @@ pub fn carve_invented(
         let p = camera.unproject_world(uv, d);
         views.iter().any(|v| v.sees_through(p, cfg))
     };
-    let (w, h) = (frame.width(), frame.height());
-    let (mut grounded, mut dropped) = (0, 0);
-    for v in 0..h {
-        for u in 0..w {
-            let i = (v * w + u) as usize;
-            let d = frame.depth_m.data[i];
-            if !missing.get(i).copied().unwrap_or(false) || !is_valid_depth(d) {
-                continue;
-            }
+    // decide on the refiner's depth, then write (0 = dropped)
+    let moves: Vec<(usize, f32)> = marked_depths(&frame.depth_m, missing)
+        .filter_map(|(u, v, i, d)| {
             let uv = Vec2::new(u as f32, v as f32);
-            if !seen_through(uv, d) {
-                continue;
-            }
-            let ground = plane
-                .and_then(|p| p.depth_at(camera, uv))
-                .filter(|g| *g > d && *g <= cfg.max_depth_m && !seen_through(uv, *g));
-            match ground {
-                Some(g) => {
-                    frame.depth_m.data[i] = g;
-                    grounded += 1;
-                }
-                None => {
-                    frame.depth_m.data[i] = 0.0;
-                    dropped += 1;
-                }
-            }
-        }
+            seen_through(uv, d).then(|| {
+                let ground = plane
+                    .and_then(|p| p.depth_at(camera, uv))
+                    .filter(|g| *g > d && *g <= cfg.max_depth_m && !seen_through(uv, *g));
+                (i, ground.unwrap_or(0.0))
+            })
+        })
+        .collect();
+    for &(i, to) in &moves {
+        frame.depth_m.data[i] = to;
     }
-    (grounded, dropped)
+    let dropped = moves.iter().filter(|(_, to)| *to == 0.0).count();
+    (moves.len() - dropped, dropped)
 }
 
 #[cfg(test)]

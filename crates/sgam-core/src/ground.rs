@@ -13,6 +13,7 @@
 
 use glam::{DVec3, Vec2, Vec3};
 
+use crate::image::marked_depths;
 use crate::{is_valid_depth, Camera, RgbdFrame};
 
 /// A plane `normal . p + offset = 0` in world coordinates (metres); `normal` has unit length and
@@ -210,29 +211,22 @@ pub fn snap_to_ground(
     // decide on the refiner's depth first, then write (a snapped pixel must not change its
     // neighbours' normals)
     let mut snapped = Vec::new();
-    for v in 0..h {
-        for u in 0..w {
-            let i = (v * w + u) as usize;
-            if !missing.get(i).copied().unwrap_or(false) {
-                continue;
-            }
-            let Some(p) = point(u, v) else { continue };
-            if plane.height(p) >= cfg.tolerance_m {
-                continue;
-            }
-            let (u0, u1, v0, v1) = (u.saturating_sub(s), (u + s).min(w - 1), v.saturating_sub(s), (v + s).min(h - 1));
-            let (Some(a), Some(b), Some(c), Some(d)) = (point(u0, v), point(u1, v), point(u, v0), point(u, v1)) else {
-                continue;
-            };
-            let n = (b - a).cross(d - c);
-            let len = n.length();
-            if !(len > 0.0 && (n.dot(plane.normal) / len).abs() >= min_cos) {
-                continue;
-            }
-            let uv = Vec2::new(u as f32, v as f32);
-            if let Some(g) = plane.depth_at(camera, uv).filter(|g| *g <= cfg.max_depth_m) {
-                snapped.push((i, g));
-            }
+    for (u, v, i, z) in marked_depths(depth, missing) {
+        let uv = Vec2::new(u as f32, v as f32);
+        if plane.height(camera.unproject_world(uv, z)) >= cfg.tolerance_m {
+            continue;
+        }
+        let (u0, u1, v0, v1) = (u.saturating_sub(s), (u + s).min(w - 1), v.saturating_sub(s), (v + s).min(h - 1));
+        let (Some(a), Some(b), Some(c), Some(d)) = (point(u0, v), point(u1, v), point(u, v0), point(u, v1)) else {
+            continue;
+        };
+        let n = (b - a).cross(d - c);
+        let len = n.length();
+        if !(len > 0.0 && (n.dot(plane.normal) / len).abs() >= min_cos) {
+            continue;
+        }
+        if let Some(g) = plane.depth_at(camera, uv).filter(|g| *g <= cfg.max_depth_m) {
+            snapped.push((i, g));
         }
     }
     let mut moved = 0;

@@ -8,6 +8,24 @@ pub fn is_valid_depth(depth_m: f32) -> bool {
     depth_m.is_finite() && depth_m > 0.0
 }
 
+/// The pixels of `depth` marked in `marked` (row-major, as long as the image; a short mask marks
+/// nothing past its end) that hold a valid depth, in row-major order: `(u, v, index, depth)`.
+/// The loop of every pass over a frame's invented pixels (flying pixels, free space, ground
+/// prior).
+pub(crate) fn marked_depths<'a>(
+    depth: &'a Image<f32>,
+    marked: &'a [bool],
+) -> impl Iterator<Item = (u32, u32, usize, f32)> + 'a {
+    let w = depth.width;
+    depth
+        .data
+        .iter()
+        .zip(marked)
+        .enumerate()
+        .filter(|&(_, (&d, &m))| m && is_valid_depth(d))
+        .map(move |(i, (&d, _))| ((i as u32) % w, (i as u32) / w, i, d))
+}
+
 /// A row-major image `[H, W]` of `T`; pixel `(u, v)` is at index `v * width + u`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Image<T> {

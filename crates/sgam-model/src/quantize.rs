@@ -93,23 +93,27 @@ pub fn select_codes(
                 let dmin = row[cand[0]];
                 let weights: Vec<f64> =
                     cand.iter().map(|&j| (-((row[j] - dmin) as f64) / temperature as f64).exp()).collect();
-                let total: f64 = weights.iter().sum();
-                let mut u = rng.random::<f64>() * total;
-                let mut pick = cand[0];
-                for (j, w) in cand.iter().zip(&weights) {
-                    if u < *w {
-                        pick = *j;
-                        break;
-                    }
-                    u -= w;
-                }
-                pick
+                cand[draw_index(&weights, rng).0]
             }
             _ => nearest,
         };
         out.push(choice as u32);
     }
     out
+}
+
+/// Draws an index with probability proportional to `weights` (one uniform draw from `rng`; the
+/// first index when rounding leaves the draw past the end). Returns it and the weights' sum.
+fn draw_index(weights: &[f64], rng: &mut ChaCha8Rng) -> (usize, f64) {
+    let total: f64 = weights.iter().sum();
+    let mut u = rng.random::<f64>() * total;
+    for (i, w) in weights.iter().enumerate() {
+        if u < *w {
+            return (i, total);
+        }
+        u -= w;
+    }
+    (0, total)
 }
 
 /// Two-level sampling over a partition of the codebook into two classes (`plain[j]`: code `j`
@@ -167,17 +171,8 @@ pub fn select_codes_by_class(
             let members: Vec<usize> = members.collect();
             let cmin = members.iter().map(|&j| row[j] as f64).fold(f64::INFINITY, f64::min);
             let weights: Vec<f64> = members.iter().map(|&j| (-(row[j] as f64 - cmin) / tw).exp()).collect();
-            let sum: f64 = weights.iter().sum();
-            let mut u = rng.random::<f64>() * sum;
-            let mut chosen = (members.first().copied().unwrap_or(nearest), weights.first().copied().unwrap_or(1.0));
-            for (&j, &w) in members.iter().zip(&weights) {
-                if u < w {
-                    chosen = (j, w);
-                    break;
-                }
-                u -= w;
-            }
-            (chosen.0, chosen.1 / sum.max(1e-300))
+            let (at, sum) = draw_index(&weights, rng);
+            (members.get(at).copied().unwrap_or(nearest), weights.get(at).copied().unwrap_or(1.0) / sum.max(1e-300))
         };
         codes.push(pick as u32);
         probs.push((p_class * p_within) as f32);

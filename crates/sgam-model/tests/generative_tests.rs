@@ -74,12 +74,8 @@ fn temperature_sampling_follows_the_softmax_of_the_distances() {
         &mut rng,
     );
     let z: f64 = dist.iter().map(|d| (-(*d as f64) / t).exp()).sum();
-    let mut chi2 = 0.0;
-    for j in 0..k {
-        let expected = n as f64 * (-(dist[j] as f64) / t).exp() / z;
-        let observed = drawn.iter().filter(|&&c| c as usize == j).count() as f64;
-        chi2 += (observed - expected).powi(2) / expected;
-    }
+    let p: Vec<f64> = dist.iter().map(|d| (-(*d as f64) / t).exp() / z).collect();
+    let chi2 = chi_square(&drawn, &p);
     // 5 degrees of freedom: the 0.1 % critical value is 20.5
     assert!(chi2 < 20.5, "chi-square {chi2:.2}");
     // T -> 0 is the argmin (code 1) in every row; observed rows always take the argmin
@@ -179,21 +175,9 @@ fn two_level_iterative_sampling_commits_every_missing_cell_once_and_keeps_observ
     assert_eq!(plain.len(), cfg.n_embed);
     let (w, h) = (32u32, 32u32);
     let f = frame(w, h, 4);
+    // a 20 x 12 pixel hole: 5 x 3 = 15 missing cells; ceil(15 / 5) = 3 passes
     let missing: Vec<bool> = (0..w * h).map(|p| (4..24).contains(&(p % w)) && (8..20).contains(&(p / w))).collect();
-    let out = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
-    let trace = r.trace().clone();
-    let expected: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
-    assert_eq!(expected.len(), 15);
-    assert_eq!(trace.passes.len(), 3, "{:?}", trace.passes);
-    let mut all: Vec<usize> = trace.passes.concat();
-    all.sort_unstable();
-    assert_eq!(all, expected, "every missing cell committed exactly once");
-    for (i, m) in missing.iter().enumerate() {
-        if !m {
-            assert_eq!(out.colour.data[i], f.colour.data[i]);
-            assert_eq!(out.depth_m.data[i], f.depth_m.data[i]);
-        }
-    }
+    assert_passes_commit_each_cell_once(&mut r, &f, &missing, 15, 3);
 }
 
 #[test]
@@ -221,6 +205,35 @@ fn ray_channels_carry_each_pixels_viewing_ray() {
     assert!(r.complete_at(&f, &vec![false; 256], Some(&Intrinsics::from_fov_x(16, 16, 1.0))).is_ok());
 }
 
+/// Completes `f` with `missing` through `r` and checks the iterative sampling: `cells` missing
+/// cells, `passes` passes each committing at least one, every missing cell committed exactly
+/// once, the observed pixels kept.
+#[allow(clippy::unwrap_used)] // a test helper: a failed completion fails the test
+fn assert_passes_commit_each_cell_once(
+    r: &mut VqRefiner,
+    f: &RgbdFrame,
+    missing: &[bool],
+    cells: usize,
+    passes: usize,
+) {
+    let (w, h) = (f.width(), f.height());
+    let out = r.complete_at(f, missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
+    let trace = r.trace().clone();
+    let expected: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
+    assert_eq!(expected.len(), cells);
+    assert_eq!(trace.passes.len(), passes, "{:?}", trace.passes);
+    assert!(trace.passes.iter().all(|p| !p.is_empty()));
+    let mut all: Vec<usize> = trace.passes.concat();
+    all.sort_unstable();
+    assert_eq!(all, expected, "every missing cell committed exactly once");
+    for (i, m) in missing.iter().enumerate() {
+        if !m {
+            assert_eq!(out.colour.data[i], f.colour.data[i]);
+            assert_eq!(out.depth_m.data[i], f.depth_m.data[i]);
+        }
+    }
+}
+
 #[test]
 fn iterative_sampling_commits_every_missing_cell_once_and_keeps_observed_pixels() {
     let device = default_device();
@@ -235,24 +248,9 @@ fn iterative_sampling_commits_every_missing_cell_once_and_keeps_observed_pixels(
     let mut r = VqRefiner::new(model, cfg.clone(), options, device);
     let (w, h) = (32u32, 32u32);
     let f = frame(w, h, 9);
-    // a 12 x 16 pixel hole: 3 x 4 = 12 missing cells of 4 x 4 pixels
+    // a 12 x 16 pixel hole: 3 x 4 = 12 missing cells of 4 x 4 pixels; ceil(12 / 5) = 3 passes
     let missing: Vec<bool> = (0..w * h).map(|p| (8..20).contains(&(p % w)) && (12..28).contains(&(p / w))).collect();
-    let out = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
-    let trace = r.trace().clone();
-    let expected: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
-    assert_eq!(expected.len(), 12);
-    // ceil(12 / 5) = 3 passes, each committing at least one cell
-    assert_eq!(trace.passes.len(), 3, "{:?}", trace.passes);
-    assert!(trace.passes.iter().all(|p| !p.is_empty()));
-    let mut all: Vec<usize> = trace.passes.concat();
-    all.sort_unstable();
-    assert_eq!(all, expected, "every missing cell committed exactly once");
-    for (i, m) in missing.iter().enumerate() {
-        if !m {
-            assert_eq!(out.colour.data[i], f.colour.data[i]);
-            assert_eq!(out.depth_m.data[i], f.depth_m.data[i]);
-        }
-    }
+    assert_passes_commit_each_cell_once(&mut r, &f, &missing, 12, 3);
     // argmin is one pass and deterministic
     r.set_options(RefinerOptions { sampling: Sampling::Argmin, ..RefinerOptions::default() });
     let a = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
