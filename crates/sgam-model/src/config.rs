@@ -97,6 +97,11 @@ pub struct ModelConfig {
     /// (see `generative::head_from_codebook`) and is trained free.
     #[serde(default)]
     pub code_head: bool,
+    /// Scene-wide context: a transformer over the latent code grid that adds to the code head's
+    /// logits in missing cells ([`crate::context`]); needs a code head. Models before it have
+    /// none.
+    #[serde(default)]
+    pub context: Option<crate::context::ContextConfig>,
 }
 
 impl ModelConfig {
@@ -122,6 +127,7 @@ impl ModelConfig {
             ray_channels: false,
             code_tau: None,
             code_head: false,
+            context: None,
         }
     }
 
@@ -149,6 +155,7 @@ impl ModelConfig {
             ray_channels: false,
             code_tau: None,
             code_head: false,
+            context: None,
         }
     }
 
@@ -173,6 +180,7 @@ impl ModelConfig {
             ray_channels: false,
             code_tau: None,
             code_head: false,
+            context: None,
         }
     }
 
@@ -262,6 +270,12 @@ impl ModelConfig {
             if self.norm_groups == 0 || !c.is_multiple_of(self.norm_groups) {
                 return bad(format!("norm_groups {} does not divide {c} channels", self.norm_groups));
             }
+        }
+        if let Some(c) = &self.context {
+            if !self.code_head {
+                return bad("a context transformer needs a code head (code_head: true)".into());
+            }
+            c.validate()?;
         }
         if let Some(tau) = self.code_tau {
             if !(tau.is_finite() && tau > 0.0) {

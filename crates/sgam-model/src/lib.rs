@@ -26,8 +26,11 @@
 pub mod blocks;
 pub mod checkpoint;
 pub mod config;
+pub mod context;
+pub mod context_train;
 pub mod convert;
 pub mod decoder_tune;
+pub mod flops;
 pub mod generative;
 pub mod loss;
 pub mod lpips;

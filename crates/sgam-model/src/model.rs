@@ -10,6 +10,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::blocks::{conv, pixel_shuffle, AttnBlock, Downsample, Norm, ResnetBlock, Upsample};
 use crate::config::ModelConfig;
+use crate::context::CodeContext;
 use crate::ModelError;
 
 /// One encoder level: residual blocks, optional attention after each, optional downsample.
@@ -259,6 +260,9 @@ pub struct VqModel {
     /// Learned code head (1x1 conv `z_channels -> n_embed`), present when
     /// [`ModelConfig::code_head`] is set.
     pub code_head: Option<Conv2d>,
+    /// Scene-wide context over the code grid ([`crate::context`]), present when
+    /// [`ModelConfig::context`] is set.
+    pub context: Option<CodeContext>,
 }
 
 impl VqModel {
@@ -279,8 +283,14 @@ impl VqModel {
             post_quant_conv: conv(config.embed_dim, config.z_channels, 1, 1, 0, device),
             decoder: Decoder::new(config, device),
             code_head: config.code_head.then(|| conv(config.z_channels, config.n_embed, 1, 1, 0, device)),
+            context: config
+                .context
+                .as_ref()
+                .map(|c| CodeContext::new(c, config.z_channels, config.embed_dim, config.n_embed, device)),
         };
-        Ok(crate::params::init_params(model, seed))
+        let mut model = crate::params::init_params(model, seed);
+        model.context = model.context.map(CodeContext::zero_output);
+        Ok(model)
     }
 
     /// Mask fusion + encoder + quant_conv: `[B, 5, H, W] -> [B, embed_dim, h, w]` (pre-quantization).
@@ -293,6 +303,11 @@ impl VqModel {
     pub fn code_logits(&self, x: Tensor<4>) -> Option<Tensor<4>> {
         let head = self.code_head.as_ref()?;
         Some(head.forward(self.encoder.forward(self.conv_in.forward(x))))
+    }
+
+    /// Mask fusion + encoder (the code head's input): `[B, 5|7, H, W] -> [B, z_channels, h, w]`.
+    pub fn features(&self, x: Tensor<4>) -> Tensor<4> {
+        self.encoder.forward(self.conv_in.forward(x))
     }
 
     /// post_quant_conv + decoder: `[B, embed_dim, h, w] -> [B, 4, H, W]`.

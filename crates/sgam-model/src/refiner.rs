@@ -7,12 +7,13 @@ use std::collections::HashMap;
 use std::path::Path;
 
 use burn::module::Module;
-use burn::tensor::Device;
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
 use crate::config::ModelConfig;
+use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
 use crate::packing::{missing_cells, pack_input, unpack};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, WeightPrecision};
@@ -155,6 +156,8 @@ pub struct SamplingTrace {
     pub passes: Vec<Vec<usize>>,
     /// Latent cells that were missing.
     pub missing_cells: Vec<bool>,
+    /// Tokens the context transformer saw in each pass (empty without a context).
+    pub context_tokens: Vec<usize>,
 }
 
 impl VqRefiner {
@@ -255,6 +258,16 @@ impl VqRefiner {
             }
             _ => None,
         };
+        if sampler && n_missing > 0 && self.model.context.is_some() {
+            let trace = self.draw_with_context(&work, &mask, &intrinsics, &cells, [ch, cw], within)?;
+            let full = self.decode_codes(&trace.codes, ch, cw)?;
+            self.trace = SamplingTrace { missing_cells: cells, ..trace };
+            let mut out = crop_frame(&full, w, h);
+            if self.options.keep_observed {
+                keep_observed(&mut out, frame, missing);
+            }
+            return Ok(out);
+        }
         let passes = if sampler && n_missing > 0 {
             n_missing.div_ceil(self.options.cells_per_pass.max(1)).clamp(1, self.options.max_passes.max(1))
         } else {
@@ -327,12 +340,121 @@ impl VqRefiner {
             }
         }
         let full = self.decode_codes(&codes, ch, cw)?;
-        self.trace = SamplingTrace { codes, passes: passes_log, missing_cells: cells };
+        self.trace = SamplingTrace { codes, passes: passes_log, missing_cells: cells, context_tokens: Vec::new() };
         let mut out = crop_frame(&full, w, h);
         if self.options.keep_observed {
             keep_observed(&mut out, frame, missing);
         }
         Ok(out)
+    }
+
+    /// Draws every cell's code with the scene-wide context ([`crate::context`]): the encoder
+    /// runs once on the guidance; observed cells take the head's most likely code; the missing
+    /// cells are covered by windows of at most `window_cells` per side, each a core of missing
+    /// cells with `margin_cells` of context around it, taken in reading order. In a window, the
+    /// transformer runs a pass per share of the core's missing cells (`cells_per_pass`, at most
+    /// `max_passes`): every open cell draws from head + context logits, and the most
+    /// confident draws are committed as revealed tokens for the next pass (all of them on the
+    /// last). Returns the codes, the cells committed per pass and the tokens of each pass (the
+    /// trace without its missing cells).
+    fn draw_with_context(
+        &mut self,
+        work: &RgbdFrame,
+        mask: &[bool],
+        intrinsics: &Intrinsics,
+        cells: &[bool],
+        [ch, cw]: [usize; 2],
+        within: Option<f32>,
+    ) -> Result<SamplingTrace, ModelError> {
+        let Some(context) = self.model.context.as_ref() else {
+            return Err(ModelError::Config("the model has no context".into()));
+        };
+        let Some(head) = self.model.code_head.as_ref() else {
+            return Err(ModelError::Config("a context needs the code head".into()));
+        };
+        let Some(cfg) = self.config.context.clone() else {
+            return Err(ModelError::Config("the model config has no context".into()));
+        };
+        let Sampling::Temperature { temperature, .. } = self.effective_sampling() else {
+            return Err(ModelError::Config("context sampling needs a temperature".into()));
+        };
+        let sampling = self.effective_sampling();
+        let k = self.config.n_embed;
+        let x = pack_input(&[work], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
+        let feats = self.model.features(x);
+        let logits = head.forward(feats.clone());
+        let z = self.config.z_channels;
+        let feats = feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]);
+        let head_rows = to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]))?;
+        // observed cells: the head's most likely code
+        let neg: Vec<f32> = head_rows.iter().map(|v| -v).collect();
+        let mut codes = select_codes(&neg, ch * cw, k, None, Sampling::Argmin, &mut self.rng);
+        let mut states: Vec<CellState> =
+            cells.iter().map(|&m| if m { CellState::Open } else { CellState::Observed }).collect();
+        let codebook = self.model.quantize.embedding.weight.val();
+        let mut passes_log = Vec::new();
+        let mut tokens = Vec::new();
+        for win in context_windows(cells, [ch, cw], cfg.window_cells, cfg.margin_cells) {
+            let [wy0, wx0, wh, ww] = win.window;
+            let window_cells: Vec<usize> =
+                (wy0..wy0 + wh).flat_map(|y| (wx0..wx0 + ww).map(move |x| y * cw + x)).collect();
+            let idx = Tensor::<1, Int>::from_data(
+                TensorData::new(window_cells.iter().map(|&i| i as i64).collect::<Vec<_>>(), [window_cells.len()]),
+                &self.device,
+            );
+            let win_feats = feats.clone().select(0, idx);
+            let core_open = |states: &[CellState]| -> Vec<bool> {
+                window_cells.iter().map(|&i| states[i] == CellState::Open && win.contains(i / cw, i % cw)).collect()
+            };
+            let n_open = core_open(&states).iter().filter(|o| **o).count();
+            if n_open == 0 {
+                continue;
+            }
+            let passes = n_open.div_ceil(self.options.cells_per_pass.max(1)).clamp(1, self.options.max_passes.max(1));
+            for pass in 0..passes {
+                let open = core_open(&states);
+                let win_states: Vec<CellState> = window_cells.iter().map(|&i| states[i]).collect();
+                let input = ContextInput::new(win_feats.clone(), &win_states, &codebook, [1, wh, ww]);
+                let residual = to_host(context.forward(input))?;
+                let dist: Vec<f32> = window_cells
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(j, &i)| {
+                        let (h, r) = (&head_rows[i * k..(i + 1) * k], &residual[j * k..(j + 1) * k]);
+                        h.iter().zip(r).map(|(a, b)| -(a + b))
+                    })
+                    .collect();
+                let n = window_cells.len();
+                let (drawn, drawn_p) = match within {
+                    Some(within) => {
+                        let plain = self.plain_codes.as_deref().unwrap_or(&[]);
+                        let (d, p) =
+                            select_codes_by_class(&dist, n, k, &open, temperature, within, plain, &mut self.rng);
+                        (d, Some(p))
+                    }
+                    None => (select_codes(&dist, n, k, Some(&open), sampling, &mut self.rng), None),
+                };
+                let mut conf: Vec<(f32, usize)> = (0..n)
+                    .filter(|&j| open[j])
+                    .map(|j| match &drawn_p {
+                        Some(p) => (p[j], j),
+                        None => (draw_probability(&dist[j * k..(j + 1) * k], drawn[j] as usize, temperature), j),
+                    })
+                    .collect();
+                let n_commit = if pass + 1 == passes { conf.len() } else { conf.len().div_ceil(passes - pass) };
+                conf.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+                let mut newly = Vec::with_capacity(n_commit);
+                for &(_, j) in conf.iter().take(n_commit) {
+                    let i = window_cells[j];
+                    codes[i] = drawn[j];
+                    states[i] = CellState::Revealed(drawn[j]);
+                    newly.push(i);
+                }
+                passes_log.push(newly);
+                tokens.push(n);
+            }
+        }
+        Ok(SamplingTrace { codes, passes: passes_log, missing_cells: Vec::new(), context_tokens: tokens })
     }
 
     /// Which codes are plain (grey: CLEVR's ground) rather than coloured, for two-level
@@ -378,6 +500,61 @@ impl VqRefiner {
             .pop()
             .ok_or_else(|| ModelError::Input("empty output".into()))
     }
+}
+
+/// One window of context sampling: the cells it draws (`core`, row-major `[y0, x0, h, w]` in
+/// latent cells) and the cells it sees (`window`, the core with its margin, inside the grid).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ContextWindow {
+    /// Cells drawn: `[y0, x0, h, w]`.
+    pub core: [usize; 4],
+    /// Cells seen: `[y0, x0, h, w]`.
+    pub window: [usize; 4],
+}
+
+impl ContextWindow {
+    fn contains(&self, y: usize, x: usize) -> bool {
+        let [y0, x0, h, w] = self.core;
+        (y0..y0 + h).contains(&y) && (x0..x0 + w).contains(&x)
+    }
+}
+
+/// Windows covering the missing cells of a `[rows, cols]` grid: the missing cells' bounding box
+/// is cut into cores of at most `window - 2 margin` cells per side, in reading order, and each
+/// core gets `margin` cells of context on every side, shifted inward at the grid's border so a
+/// window keeps `window` cells per side where the grid allows. Cores without a missing cell are
+/// left out.
+pub fn context_windows(missing: &[bool], [rows, cols]: [usize; 2], window: usize, margin: usize) -> Vec<ContextWindow> {
+    let found = (0..rows * cols).filter(|&i| missing.get(i).copied().unwrap_or(false));
+    let (mut y0, mut x0, mut y1, mut x1) = (usize::MAX, usize::MAX, 0, 0);
+    for i in found {
+        let (y, x) = (i / cols, i % cols);
+        (y0, x0, y1, x1) = (y0.min(y), x0.min(x), y1.max(y + 1), x1.max(x + 1));
+    }
+    if y0 == usize::MAX {
+        return Vec::new();
+    }
+    let core = window.saturating_sub(2 * margin).max(1);
+    let place = |start: usize, len: usize, size: usize| -> (usize, usize) {
+        // a window of `window` cells (or the whole axis) around [start, start + len)
+        let side = window.min(size).max(len.min(size));
+        let lo = start.saturating_sub(margin).min(size - side);
+        (lo, side)
+    };
+    let mut out = Vec::new();
+    for cy in (y0..y1).step_by(core) {
+        for cx in (x0..x1).step_by(core) {
+            let (ch, cw) = (core.min(y1 - cy), core.min(x1 - cx));
+            let any = (cy..cy + ch).any(|y| (cx..cx + cw).any(|x| missing[y * cols + x]));
+            if !any {
+                continue;
+            }
+            let (wy, wh) = place(cy, ch, rows);
+            let (wx, ww) = place(cx, cw, cols);
+            out.push(ContextWindow { core: [cy, cx, ch, cw], window: [wy, wx, wh, ww] });
+        }
+    }
+    out
 }
 
 /// Saturation below which a decoded code counts as plain (see [`VqRefiner::plain_codes`]). On

@@ -51,6 +51,9 @@ pub struct BenchArgs {
     /// Print only the JSON line (otherwise also a human summary on stderr).
     #[arg(long)]
     pub json: bool,
+    /// Model file for `refine` and `step` (default: the bundled model).
+    #[arg(long, value_name = "FILE")]
+    pub model: Option<std::path::PathBuf>,
 }
 
 /// Renders `n` frames along the zig-zag from the dataset's first camera.
@@ -81,8 +84,15 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
 
 /// The bundled compact model with `sgam generate`'s default sampling (the refiner `sgam
 /// generate` builds with no options), for timing.
-fn compact_refiner() -> Result<sgam_model::VqRefiner> {
-    let defaults = crate::generate::GenerateArgs::for_refiner(crate::generate::RefinerKind::Auto, None, false);
+fn compact_refiner(model: Option<&std::path::Path>) -> Result<sgam_model::VqRefiner> {
+    if let Some(p) = model {
+        crate::guard::check_input_file("--model", p)?;
+    }
+    let defaults = crate::generate::GenerateArgs::for_refiner(
+        crate::generate::RefinerKind::Auto,
+        model.map(|p| p.to_path_buf()),
+        false,
+    );
     crate::generate::model_refiner(crate::generate::RefinerKind::Auto, &defaults)?
         .ok_or_else(|| anyhow::anyhow!("the default refiner is not the model"))
 }
@@ -104,7 +114,7 @@ fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Va
 }
 
 fn bench_refine(args: &BenchArgs) -> Result<()> {
-    let mut refiner = compact_refiner()?;
+    let mut refiner = compact_refiner(args.model.as_deref())?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let (cam, frame) = &seq[0];
     let n = frame.depth_m.len();
@@ -117,20 +127,66 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
         std::hint::black_box(sgam_core::Refiner::refine(&mut refiner, &g)?);
         ms.push(t.elapsed().as_secs_f64() * 1e3);
     }
-    let params = refiner.config().clone();
+    let cfg = refiner.config().clone();
+    let trace = refiner.trace().clone();
+    // work of one refine: with a context, one encoder and one decoder pass plus the transformer's
+    // passes; without, an encoder and a decoder pass per sampling pass
+    let pass = sgam_model::flops::pass_macs(&cfg, args.res as usize, args.res as usize);
+    let passes = trace.passes.len().max(1) as u64;
+    let context_macs: u64 = match &cfg.context {
+        Some(c) => trace
+            .context_tokens
+            .iter()
+            .map(|&t| sgam_model::context::multiply_adds(c, cfg.z_channels, cfg.embed_dim, cfg.n_embed, t, t))
+            .sum(),
+        None => 0,
+    };
+    let (enc, dec) = if cfg.context.is_some() {
+        (pass.encoder, pass.decoder)
+    } else {
+        (passes * pass.encoder, passes * pass.decoder)
+    };
+    let gflop = 2.0 * (enc + dec + context_macs) as f64 / 1e9;
+    let median = sgam_metrics::median(&ms).unwrap_or(f64::NAN);
+    let gemm = gemm_gflops(1024, 5);
     print_line(
         args,
         "refine",
         &ms,
-        json!({"preset": "compact", "embed_dim": params.embed_dim, "n_embed": params.n_embed,
-               "passes": refiner.trace().passes.len(), "missing_fraction": 0.25}),
+        json!({"preset": cfg.name, "embed_dim": cfg.embed_dim, "n_embed": cfg.n_embed,
+               "context": cfg.context, "passes": trace.passes.len(), "missing_fraction": 0.25,
+               "gflop_per_refine": gflop,
+               "gflop_encoder_pass": 2.0 * pass.encoder as f64 / 1e9,
+               "gflop_decoder_pass": 2.0 * pass.decoder as f64 / 1e9,
+               "gflop_context": 2.0 * context_macs as f64 / 1e9,
+               "achieved_gflops": gflop / (median / 1e3),
+               "gemm_1024_gflops": gemm,
+               "share_of_gemm": gflop / (median / 1e3) / gemm}),
     );
     Ok(())
 }
 
+/// GFLOP/s of the backend's f32 `n x n` matrix product (median of `reps`), the yardstick the
+/// model's achieved rate is compared with (bench/gemm_peer.py gives numpy/OpenBLAS's beside it).
+fn gemm_gflops(n: usize, reps: usize) -> f64 {
+    use sgam_model::burn::tensor::{Distribution, Tensor};
+    let device = sgam_model::default_device();
+    let a = Tensor::<2>::random([n, n], Distribution::Uniform(-1.0, 1.0), &device);
+    let b = Tensor::<2>::random([n, n], Distribution::Uniform(-1.0, 1.0), &device);
+    let mut times = Vec::new();
+    for _ in 0..=reps {
+        let t = Instant::now();
+        let c = a.clone().matmul(b.clone());
+        std::hint::black_box(c.into_data());
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.remove(0); // warm-up
+    2.0 * (n as f64).powi(3) / sgam_metrics::median(&times).unwrap_or(f64::NAN) / 1e9
+}
+
 fn bench_step(args: &BenchArgs) -> Result<()> {
     use sgam_pipeline::WorldGenerator;
-    let refiner = compact_refiner()?;
+    let refiner = compact_refiner(args.model.as_deref())?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
     // the loop exactly as `sgam generate` resolves it by default (map, sources, ground prior,

@@ -19,6 +19,7 @@ mod progress;
 mod serve;
 mod synth;
 mod train;
+mod train_context;
 mod train_decoder;
 mod train_sampler;
 mod video;

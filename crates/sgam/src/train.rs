@@ -39,6 +39,9 @@ pub enum TrainCommand {
     /// (cross-entropy against the codes the frozen encoder gives the clean target), on pairs
     /// recorded from the generator itself running with the oracle on training scenes.
     Sampler(SamplerArgs),
+    /// Scene-wide context: a transformer over the code grid that completes a hole knowing all of
+    /// it (MaskGIT-style, on the frozen sampler's features); everything else stays.
+    Context(crate::train_context::ContextArgs),
     /// Fine-tune the decoder on whole frames (the codes, encoder and codebook stay): a decoder
     /// trained on crops cannot tell how far the ground is at a frame's border.
     Decoder(crate::train_decoder::DecoderArgs),
@@ -357,6 +360,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         TrainCommand::Stage2(a) => (Stage::Two, a),
         TrainCommand::Export(a) => return export(&a),
         TrainCommand::Sampler(a) => return crate::train_sampler::run(&a),
+        TrainCommand::Context(a) => return crate::train_context::run(&a),
         TrainCommand::Decoder(a) => return crate::train_decoder::run(&a),
     };
     let model_config = match (&args.model_config, args.preset) {

@@ -1,0 +1,498 @@
+//! Training the scene-wide context ([`crate::context`]) MaskGIT-style on cached encoder features.
+//!
+//! Everything but the context transformer is frozen: the generative encoder, its code head,
+//! the codebook and the decoder. So each training pair's encoder features are computed once
+//! ([`context_pairs`]) and training runs at the transformer's speed. Each step, every pair's
+//! missing cells are split at random into *revealed* ones (given their target code, as earlier
+//! passes of generation give the cells they committed) and *open* ones (to predict). The
+//! revealed share follows MaskGIT's cosine schedule (`1 - cos(pi u / 2)`, `u` uniform), and a
+//! share [`ContextTrainConfig::whole_hole`] of the pairs reveals nothing (the first pass, which
+//! decides the most). The loss is the soft-target cross-entropy of the generative stage 2 (credit
+//! spread over codes within a codebook spacing of the target) over the open cells; logits are
+//! the frozen head's plus the context's residual, which starts at zero.
+//!
+//! Checkpoints are one folder, `RUN/ckpt`, committed by [`crate::checkpoint::commit_folder`]
+//! (CRC manifest): `model.safetensors` (the whole model with its context, loadable by
+//! [`crate::refiner::load_model`] and exportable by `sgam train export`), `optim.bpk`,
+//! `state.json`.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use burn::module::Module;
+use burn::optim::{GradientsParams, ModuleOptimizer};
+use burn::tensor::activation::{log_softmax, softmax};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use sgam_core::{Intrinsics, RgbdFrame};
+
+use crate::checkpoint::{commit_folder, committed_folder, verify_folder};
+use crate::config::ModelConfig;
+use crate::context::{CellState, CodeContext, ContextInput};
+use crate::generative::{codebook_spacing, CodePair};
+use crate::model::VqModel;
+use crate::packing::{missing_cells, pack_input};
+use crate::params::{
+    from_safetensors_bytes, load_named, named_tensors, to_safetensors_bytes, write_atomic, NamedTensor, WeightPrecision,
+};
+use crate::quantize::{squared_distances, to_host};
+use crate::ModelError;
+
+/// One training example: the frozen encoder's features of a guidance crop and its targets.
+#[derive(Debug, Clone)]
+pub struct ContextPair {
+    /// Features `[h * w, z]`, row-major cells.
+    pub features: Vec<f32>,
+    /// Target code per cell.
+    pub codes: Vec<u32>,
+    /// Missing cells (the refiner's rule: more than the threshold of their pixels missing).
+    pub missing: Vec<bool>,
+    /// Latent rows and columns.
+    pub shape: [usize; 2],
+}
+
+/// Encoder features of `pairs` under `model` (frozen), `batch` crops per call; pairs without a
+/// missing cell are dropped (nothing to learn from them).
+pub fn context_pairs(
+    model: &VqModel,
+    config: &ModelConfig,
+    pairs: &[CodePair],
+    missing_cell_threshold: f32,
+    batch: usize,
+    progress: &mut dyn FnMut(usize),
+) -> Result<Vec<ContextPair>, ModelError> {
+    let device = crate::default_device();
+    let f = config.downsample_factor();
+    let mut out = Vec::with_capacity(pairs.len());
+    let mut done = 0;
+    for chunk in pairs.chunks(batch.max(1)) {
+        // pairs of one call must share a size
+        let mut groups: BTreeMap<(u32, u32), Vec<&CodePair>> = BTreeMap::new();
+        for p in chunk {
+            groups.entry((p.input.width(), p.input.height())).or_default().push(p);
+        }
+        for ((w, h), group) in groups {
+            let (w, h) = (w as usize, h as usize);
+            if !w.is_multiple_of(f) || !h.is_multiple_of(f) {
+                return Err(ModelError::Input(format!("a {w}x{h} pair is not a multiple of {f} pixels")));
+            }
+            let frames: Vec<&RgbdFrame> = group.iter().map(|p| &p.input).collect();
+            let masks: Vec<Option<&[bool]>> = group.iter().map(|p| Some(p.missing.as_slice())).collect();
+            let intr: Vec<Intrinsics> = group.iter().map(|p| p.intrinsics).collect();
+            let x = pack_input(&frames, &masks, &intr, config, &device)?;
+            let feats = model.features(x);
+            let [b, z, zh, zw] = feats.dims();
+            let host = to_host(feats.permute([0, 2, 3, 1]))?;
+            for (i, p) in group.iter().enumerate() {
+                if p.codes.len() != zh * zw {
+                    return Err(ModelError::Input(format!(
+                        "a {w}x{h} pair needs {} target codes, has {}",
+                        zh * zw,
+                        p.codes.len()
+                    )));
+                }
+                let missing = missing_cells(&p.missing, w, h, f, missing_cell_threshold);
+                if missing.iter().any(|m| *m) {
+                    out.push(ContextPair {
+                        features: host[i * zh * zw * z..(i + 1) * zh * zw * z].to_vec(),
+                        codes: p.codes.clone(),
+                        missing,
+                        shape: [zh, zw],
+                    });
+                }
+            }
+            debug_assert_eq!(b, group.len());
+        }
+        done += chunk.len();
+        progress(done);
+    }
+    Ok(out)
+}
+
+/// Hyper-parameters of the context training (stored in every checkpoint).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ContextTrainConfig {
+    /// Total optimisation steps.
+    pub steps: u64,
+    /// Pairs per step.
+    pub batch: usize,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// Half-cosine decay from `lr` between this step and `steps` (None: constant).
+    pub lr_decay_from: Option<u64>,
+    /// Linear warm-up of the learning rate over this many steps.
+    pub warmup: u64,
+    /// Share of the pairs whose hole is shown whole (nothing revealed).
+    pub whole_hole: f32,
+    /// Soft targets' width in codebook spacings (0 = one-hot).
+    pub target_smoothing: f32,
+    /// Checkpoint every N steps.
+    pub ckpt_every: u64,
+    /// RNG seed (batch order, reveals).
+    pub seed: u64,
+}
+
+impl Default for ContextTrainConfig {
+    fn default() -> Self {
+        Self {
+            steps: 20_000,
+            batch: 16,
+            lr: 5e-4,
+            lr_decay_from: None,
+            warmup: 200,
+            whole_hole: 0.3,
+            target_smoothing: 1.0,
+            ckpt_every: 250,
+            seed: 0,
+        }
+    }
+}
+
+impl ContextTrainConfig {
+    /// Learning rate of the step after `step` steps (warm-up, then the crate's half cosine).
+    pub fn lr_at(&self, step: u64) -> f64 {
+        let base = crate::train::half_cosine_lr(self.lr, self.steps, self.lr_decay_from, step);
+        if step < self.warmup {
+            base * (step + 1) as f64 / self.warmup as f64
+        } else {
+            base
+        }
+    }
+}
+
+/// Figures of one step or evaluation (open cells only).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ContextReport {
+    /// Completed steps.
+    pub step: u64,
+    /// Cross-entropy (nats) of the exact target code over open cells.
+    pub ce: f32,
+    /// Top-1 accuracy over open cells.
+    pub acc: f32,
+    /// Open cells counted.
+    pub open_cells: usize,
+    /// The same for the frozen head alone (what the context improves on).
+    pub ce_head: f32,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct ContextState {
+    version: u32,
+    model_config: ModelConfig,
+    train_config: ContextTrainConfig,
+    step: u64,
+    rng_seed: [u8; 32],
+    rng_stream: u64,
+    rng_word_pos: u128,
+}
+
+const STATE_VERSION: u32 = 1;
+
+/// A context training session.
+pub struct ContextTrainer {
+    /// Architecture (with its context).
+    pub model_config: ModelConfig,
+    /// Hyper-parameters.
+    pub train_config: ContextTrainConfig,
+    /// The trained part.
+    pub context: CodeContext,
+    /// Frozen weights of everything else (saved with the context).
+    base: BTreeMap<String, NamedTensor>,
+    head_weight: Vec<f32>,
+    head_bias: Vec<f32>,
+    codebook: Vec<f32>,
+    spacing: f32,
+    optim: ModuleOptimizer,
+    /// Completed steps.
+    pub step: u64,
+    /// Batch and reveal RNG.
+    pub rng: ChaCha8Rng,
+    device: Device,
+}
+
+impl std::fmt::Debug for ContextTrainer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ContextTrainer").field("step", &self.step).field("config", &self.train_config).finish()
+    }
+}
+
+fn adam() -> ModuleOptimizer {
+    crate::train::adam_with(0.9, 0.98)
+}
+
+/// Random states of one pair's cells: observed stay observed; missing cells are revealed (with
+/// their target code) or open, at least one open.
+pub fn draw_states(pair: &ContextPair, whole_hole: f32, rng: &mut ChaCha8Rng) -> Vec<CellState> {
+    let mut missing: Vec<usize> = (0..pair.missing.len()).filter(|&i| pair.missing[i]).collect();
+    let n_reveal = if rng.random::<f32>() < whole_hole {
+        0
+    } else {
+        let u: f32 = rng.random();
+        (((1.0 - (std::f32::consts::FRAC_PI_2 * u).cos()) * missing.len() as f32) as usize)
+            .min(missing.len().saturating_sub(1))
+    };
+    let mut states: Vec<CellState> =
+        pair.missing.iter().map(|&m| if m { CellState::Open } else { CellState::Observed }).collect();
+    missing.shuffle(rng);
+    for &i in missing.iter().take(n_reveal) {
+        states[i] = CellState::Revealed(pair.codes[i]);
+    }
+    states
+}
+
+impl ContextTrainer {
+    /// A new session: `init` holds a generative model with a code head (its context, when
+    /// present, warm-starts this one; else the context starts fresh, adding nothing);
+    /// `model_config` is `init`'s config with the context to train.
+    pub fn new(
+        model_config: &ModelConfig,
+        init: &BTreeMap<String, NamedTensor>,
+        train_config: &ContextTrainConfig,
+    ) -> Result<Self, ModelError> {
+        if model_config.context.is_none() || !model_config.code_head {
+            return Err(ModelError::Config("context training needs a model with a code head and a context".into()));
+        }
+        let device = crate::default_device();
+        let fresh = VqModel::new(model_config, train_config.seed, &device)?;
+        let has_context = init.keys().any(|k| k.starts_with("context."));
+        if !has_context {
+            // a fresh context: everything else must come from `init`
+            if let Some(name) =
+                named_tensors(&fresh).keys().find(|k| !k.starts_with("context.") && !init.contains_key(*k))
+            {
+                return Err(ModelError::Weights(format!("missing parameter {name}")));
+            }
+        }
+        let model = load_named(fresh, init, !has_context, false)?;
+        let base: BTreeMap<String, NamedTensor> =
+            named_tensors(&model).into_iter().filter(|(k, _)| !k.starts_with("context.")).collect();
+        let get = |name: &str| {
+            base.get(name)
+                .map(|t| t.values.clone())
+                .ok_or_else(|| ModelError::Weights(format!("missing parameter {name}")))
+        };
+        let (head_weight, head_bias, codebook) =
+            (get("code_head.weight")?, get("code_head.bias")?, get("quantize.embedding.weight")?);
+        let spacing = codebook_spacing(&model)?;
+        let context = model.context.ok_or_else(|| ModelError::Config("the model has no context".into()))?.train();
+        Ok(Self {
+            model_config: model_config.clone(),
+            train_config: train_config.clone(),
+            context,
+            base,
+            head_weight,
+            head_bias,
+            codebook,
+            spacing,
+            optim: adam(),
+            step: 0,
+            rng: ChaCha8Rng::seed_from_u64(train_config.seed),
+            device,
+        })
+    }
+
+    fn constant(&self, values: &[f32], shape: [usize; 2], dev: &Device) -> Tensor<2> {
+        Tensor::from_data(TensorData::new(values.to_vec(), shape), dev)
+    }
+
+    /// Head and total log-probabilities of the open cells `[m, K]`, and their targets.
+    fn forward(
+        &self,
+        context: &CodeContext,
+        batch: &[&ContextPair],
+        states: &[Vec<CellState>],
+        dev: &Device,
+    ) -> Result<(Tensor<2>, Tensor<2>, Vec<u32>), ModelError> {
+        let (k, z, e) = (self.model_config.n_embed, self.model_config.z_channels, self.model_config.embed_dim);
+        let [h, w] = batch[0].shape;
+        if batch.iter().any(|p| p.shape != [h, w]) {
+            return Err(ModelError::Input("pairs of one batch must share a size".into()));
+        }
+        let n = batch.len() * h * w;
+        let feats: Vec<f32> = batch.iter().flat_map(|p| p.features.iter().copied()).collect();
+        if feats.len() != n * z {
+            return Err(ModelError::Input(format!("features of {} values for {n} cells of {z} channels", feats.len())));
+        }
+        let feats = self.constant(&feats, [n, z], dev);
+        let all_states: Vec<CellState> = states.iter().flatten().copied().collect();
+        let codebook = self.constant(&self.codebook, [k, e], dev);
+        let input = ContextInput::new(feats.clone(), &all_states, &codebook, [batch.len(), h, w]);
+        let open: Vec<usize> = (0..n).filter(|&i| all_states[i] == CellState::Open).collect();
+        let targets: Vec<u32> = open.iter().map(|&i| batch[i / (h * w)].codes[i % (h * w)]).collect();
+        let idx = Tensor::<1, Int>::from_data(
+            TensorData::new(open.iter().map(|&i| i as i64).collect::<Vec<_>>(), [open.len()]),
+            dev,
+        );
+        let head_w = self.constant(&self.head_weight, [k, z], dev);
+        let head_b = self.constant(&self.head_bias, [1, k], dev);
+        let head = feats.select(0, idx.clone()).matmul(head_w.transpose()) + head_b;
+        let residual = context.out.forward(context.tokens(input).select(0, idx));
+        let total = log_softmax(head.clone() + residual, 1);
+        Ok((log_softmax(head, 1), total, targets))
+    }
+
+    /// Soft targets `[m, K]` around `targets`.
+    fn soft_targets(&self, targets: &[u32], dev: &Device) -> Tensor<2> {
+        let (k, e) = (self.model_config.n_embed, self.model_config.embed_dim);
+        let codebook = self.constant(&self.codebook, [k, e], dev);
+        let idx = Tensor::<1, Int>::from_data(
+            TensorData::new(targets.iter().map(|&c| c as i64).collect::<Vec<_>>(), [targets.len()]),
+            dev,
+        );
+        let rows = codebook.clone().select(0, idx);
+        let scale = 1.0 / (self.train_config.target_smoothing.max(1e-6) * self.spacing);
+        softmax(squared_distances(rows, codebook).neg().mul_scalar(scale), 1)
+    }
+
+    fn report(head: &[f32], total: &[f32], targets: &[u32], k: usize) -> ContextReport {
+        let mut r = ContextReport { open_cells: targets.len(), ..ContextReport::default() };
+        for (i, &t) in targets.iter().enumerate() {
+            let row = &total[i * k..(i + 1) * k];
+            r.ce -= row[t as usize];
+            r.ce_head -= head[i * k + t as usize];
+            let best = (0..k).fold(0, |b, j| if row[j] > row[b] { j } else { b });
+            r.acc += (best == t as usize) as u8 as f32;
+        }
+        let m = targets.len().max(1) as f32;
+        r.ce /= m;
+        r.ce_head /= m;
+        r.acc /= m;
+        r
+    }
+
+    /// One optimisation step on `batch` (pairs of one size).
+    pub fn step_on(&mut self, batch: &[&ContextPair]) -> Result<ContextReport, ModelError> {
+        if batch.is_empty() {
+            return Err(ModelError::Input("empty batch".into()));
+        }
+        let whole = self.train_config.whole_hole;
+        let states: Vec<Vec<CellState>> = batch.iter().map(|p| draw_states(p, whole, &mut self.rng)).collect();
+        let dev = self.device.clone().autodiff();
+        let (head, total, targets) = self.forward(&self.context, batch, &states, &dev)?;
+        let loss = if self.train_config.target_smoothing > 0.0 {
+            (self.soft_targets(&targets, &dev) * total.clone()).sum_dim(1).mean().neg()
+        } else {
+            let idx = Tensor::<2, Int>::from_data(
+                TensorData::new(targets.iter().map(|&c| c as i64).collect::<Vec<_>>(), [targets.len(), 1]),
+                &dev,
+            );
+            total.clone().gather(1, idx).mean().neg()
+        };
+        let loss_value = to_host(loss.clone().detach())?.first().copied().unwrap_or(f32::NAN);
+        if !loss_value.is_finite() {
+            return Err(ModelError::Input(format!("the loss became {loss_value} at step {}", self.step + 1)));
+        }
+        let mut grads = loss.backward();
+        let g = GradientsParams::from_module(&mut grads, &self.context);
+        let lr = self.train_config.lr_at(self.step);
+        self.context = self.optim.step(lr, self.context.clone(), g);
+        self.step += 1;
+        let k = self.model_config.n_embed;
+        let mut r = Self::report(&to_host(head.detach())?, &to_host(total.detach())?, &targets, k);
+        r.step = self.step;
+        Ok(r)
+    }
+
+    /// Cross-entropy on held-out pairs with a fixed draw of states (`whole_hole` = 1: nothing
+    /// revealed, the first pass; 0: MaskGIT's reveal schedule).
+    pub fn evaluate(&self, pairs: &[ContextPair], whole_hole: f32, batch: usize) -> Result<ContextReport, ModelError> {
+        let context = self.context.valid();
+        let mut rng = ChaCha8Rng::seed_from_u64(0x0c0_7e47);
+        let k = self.model_config.n_embed;
+        let (mut head, mut total, mut targets) = (Vec::new(), Vec::new(), Vec::new());
+        let mut by_size: BTreeMap<[usize; 2], Vec<&ContextPair>> = BTreeMap::new();
+        for p in pairs {
+            by_size.entry(p.shape).or_default().push(p);
+        }
+        for group in by_size.values() {
+            for chunk in group.chunks(batch.max(1)) {
+                let states: Vec<Vec<CellState>> = chunk.iter().map(|p| draw_states(p, whole_hole, &mut rng)).collect();
+                let (h, t, c) = self.forward(&context, chunk, &states, &self.device)?;
+                head.extend(to_host(h)?);
+                total.extend(to_host(t)?);
+                targets.extend(c);
+            }
+        }
+        let mut r = Self::report(&head, &total, &targets, k);
+        r.step = self.step;
+        Ok(r)
+    }
+
+    /// The whole model's weights: the frozen parts and the current context.
+    pub fn weights(&self) -> BTreeMap<String, NamedTensor> {
+        let mut all = self.base.clone();
+        for (name, t) in named_tensors(&self.context.valid()) {
+            all.insert(format!("context.{name}"), t);
+        }
+        all
+    }
+
+    /// Commits `run_dir/ckpt` (weights, optimizer, state) atomically.
+    pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
+        let weights = self.weights();
+        let meta = crate::refiner::weight_metadata(&self.model_config)?;
+        let bytes = to_safetensors_bytes(&weights, WeightPrecision::F32, Some(meta))?;
+        let optim = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
+        let state = ContextState {
+            version: STATE_VERSION,
+            model_config: self.model_config.clone(),
+            train_config: self.train_config.clone(),
+            step: self.step,
+            rng_seed: self.rng.get_seed(),
+            rng_stream: self.rng.get_stream(),
+            rng_word_pos: self.rng.get_word_pos(),
+        };
+        let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
+        commit_folder(run_dir, "ckpt", |dir| {
+            write_atomic(&dir.join("model.safetensors"), &bytes)?;
+            write_atomic(&dir.join("optim.bpk"), &optim)?;
+            write_atomic(&dir.join("state.json"), &json)
+        })?;
+        Ok(())
+    }
+
+    /// Whether `run_dir` holds a committed checkpoint.
+    pub fn has_checkpoint(run_dir: &Path) -> bool {
+        committed_folder(run_dir, "ckpt").is_some()
+    }
+
+    /// Resumes from `run_dir`'s checkpoint (manifest verified); `steps` and `lr_decay_from`
+    /// override the stored values when given.
+    pub fn resume(run_dir: &Path, steps: Option<u64>, lr_decay_from: Option<u64>) -> Result<Self, ModelError> {
+        let dir = committed_folder(run_dir, "ckpt")
+            .ok_or_else(|| ModelError::checkpoint(run_dir, "no committed checkpoint (ckpt/ with a manifest)"))?;
+        verify_folder(&dir)?;
+        let path = dir.join("state.json");
+        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
+        let state: ContextState = serde_json::from_slice(&bytes)
+            .map_err(|e| ModelError::checkpoint(&path, format!("not a context training state: {e}")))?;
+        if state.version != STATE_VERSION {
+            return Err(ModelError::checkpoint(
+                &path,
+                format!("state version {} (this build reads {STATE_VERSION})", state.version),
+            ));
+        }
+        let weights = dir.join("model.safetensors");
+        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
+        let tensors =
+            from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
+        let mut train_config = state.train_config;
+        if let Some(s) = steps {
+            train_config.steps = s;
+        }
+        if lr_decay_from.is_some() {
+            train_config.lr_decay_from = lr_decay_from;
+        }
+        let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
+        let optim = dir.join("optim.bpk");
+        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
+        t.step = state.step;
+        t.rng = ChaCha8Rng::from_seed(state.rng_seed);
+        t.rng.set_stream(state.rng_stream);
+        t.rng.set_word_pos(state.rng_word_pos);
+        Ok(t)
+    }
+}

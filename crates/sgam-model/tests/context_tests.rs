@@ -1,0 +1,225 @@
+//! The scene-wide context: windows that cover a hole, a fresh context that changes nothing, a
+//! trained one that sees its whole window, training that learns, and checkpoints that resume.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use sgam_core::{Intrinsics, RgbdFrame};
+use sgam_model::burn::tensor::{Tensor, TensorData};
+use sgam_model::context::{CellState, ContextConfig, ContextInput};
+use sgam_model::context_train::{draw_states, ContextPair, ContextTrainConfig, ContextTrainer};
+use sgam_model::params::named_tensors;
+use sgam_model::refiner::context_windows;
+use sgam_model::{ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
+
+fn tiny_context_config() -> ModelConfig {
+    ModelConfig {
+        code_head: true,
+        code_tau: Some(1.0),
+        context: Some(ContextConfig { dim: 16, layers: 2, heads: 2, mlp_ratio: 2, window_cells: 8, margin_cells: 2 }),
+        ..ModelConfig::tiny()
+    }
+}
+
+#[test]
+fn windows_cover_every_missing_cell_once_and_see_their_margin() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for case in 0..40 {
+        let (rows, cols) = (rng.random_range(1..40usize), rng.random_range(1..40usize));
+        let p = rng.random_range(0.0..1.0f64);
+        let missing: Vec<bool> = (0..rows * cols).map(|_| rng.random_bool(p)).collect();
+        let (window, margin) = (16, 3);
+        let wins = context_windows(&missing, [rows, cols], window, margin);
+        let mut covered = vec![0u32; rows * cols];
+        for w in &wins {
+            let [cy, cx, ch, cw] = w.core;
+            let [wy, wx, wh, ww] = w.window;
+            assert!(ch <= window - 2 * margin && cw <= window - 2 * margin, "case {case}: core {:?}", w.core);
+            assert!(wy + wh <= rows && wx + ww <= cols, "case {case}: window {:?} leaves the grid", w.window);
+            assert!(wh <= window && ww <= window, "case {case}: window {:?} too large", w.window);
+            assert!(wy <= cy && cy + ch <= wy + wh && wx <= cx && cx + cw <= wx + ww, "case {case}: core outside");
+            // a margin on every side the grid allows
+            assert!(cy - wy >= margin.min(cy) && cx - wx >= margin.min(cx), "case {case}: no margin before {w:?}");
+            assert!(
+                wy + wh - (cy + ch) >= margin.min(rows - cy - ch) && wx + ww - (cx + cw) >= margin.min(cols - cx - cw),
+                "case {case}: no margin after {w:?}"
+            );
+            for y in cy..cy + ch {
+                for x in cx..cx + cw {
+                    covered[y * cols + x] += 1;
+                }
+            }
+        }
+        for i in 0..rows * cols {
+            assert!(covered[i] <= 1, "case {case}: cell {i} in two cores");
+            if missing[i] {
+                assert_eq!(covered[i], 1, "case {case}: missing cell {i} in no core");
+            }
+        }
+    }
+    assert!(context_windows(&[false; 12], [3, 4], 16, 3).is_empty());
+}
+
+fn random_input(cfg: &ModelConfig, states: &[CellState], shape: [usize; 3], seed: u64) -> ContextInput {
+    let device = sgam_model::default_device();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let n = states.len();
+    let feats: Vec<f32> = (0..n * cfg.z_channels).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let codebook: Vec<f32> = (0..cfg.n_embed * cfg.embed_dim).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let feats = Tensor::<2>::from_data(TensorData::new(feats, [n, cfg.z_channels]), &device);
+    let codebook = Tensor::<2>::from_data(TensorData::new(codebook, [cfg.n_embed, cfg.embed_dim]), &device);
+    ContextInput::new(feats, states, &codebook, shape)
+}
+
+fn host(t: Tensor<2>) -> Vec<f32> {
+    t.into_data().try_to_vec::<f32>().unwrap_or_default()
+}
+
+#[test]
+fn a_fresh_context_adds_nothing_and_a_trained_one_sees_its_whole_window() {
+    let cfg = tiny_context_config();
+    let device = sgam_model::default_device();
+    let model = VqModel::new(&cfg, 1, &device).expect("model");
+    let context = model.context.expect("context");
+    let states = vec![CellState::Open; 64];
+    let residual = host(context.forward(random_input(&cfg, &states, [1, 8, 8], 5)));
+    assert_eq!(residual.len(), 64 * cfg.n_embed);
+    assert!(residual.iter().all(|v| *v == 0.0), "a fresh context must leave the head's logits alone");
+
+    // with a non-zero output, a change at one corner reaches the opposite corner (attention),
+    // though the positional convolution alone reaches one cell per block
+    let mut weights = named_tensors(&context);
+    for (name, t) in weights.iter_mut() {
+        if name.starts_with("out.") {
+            let mut rng = ChaCha8Rng::seed_from_u64(9);
+            t.values.iter_mut().for_each(|v| *v = rng.random_range(-0.5..0.5));
+        }
+    }
+    let context = sgam_model::params::load_named(context, &weights, false, false).expect("load");
+    let before = host(context.forward(random_input(&cfg, &states, [1, 8, 8], 5)));
+    let mut changed = states.clone();
+    changed[0] = CellState::Revealed(7);
+    let after = host(context.forward(random_input(&cfg, &changed, [1, 8, 8], 5)));
+    let k = cfg.n_embed;
+    let far = 63 * k..64 * k;
+    let diff: f32 = before[far.clone()].iter().zip(&after[far]).map(|(a, b)| (a - b).abs()).sum();
+    assert!(diff > 1e-4, "revealing cell (0, 0) must change cell (7, 7)'s logits (diff {diff})");
+}
+
+fn toy_pairs(cfg: &ModelConfig, n: usize, seed: u64) -> Vec<ContextPair> {
+    // a learnable rule only the context can use: every missing cell's code is the code of the
+    // pair (one per pair, shared by all its cells); features carry nothing about it
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|_| {
+            let code = rng.random_range(0..4u32);
+            let missing: Vec<bool> = (0..16).map(|i| i % 4 >= 1).collect();
+            ContextPair {
+                features: (0..16 * cfg.z_channels).map(|_| rng.random_range(-0.1..0.1)).collect(),
+                codes: vec![code; 16],
+                missing,
+                shape: [4, 4],
+            }
+        })
+        .collect()
+}
+
+#[test]
+fn training_uses_revealed_cells_and_resumes_where_it_stopped() {
+    let cfg = tiny_context_config();
+    let device = sgam_model::default_device();
+    let init = named_tensors(&VqModel::new(&ModelConfig { context: None, ..cfg.clone() }, 2, &device).expect("model"));
+    let tc = ContextTrainConfig {
+        steps: 200,
+        batch: 8,
+        lr: 3e-3,
+        warmup: 10,
+        whole_hole: 0.0,
+        target_smoothing: 0.0,
+        ckpt_every: 1000,
+        ..ContextTrainConfig::default()
+    };
+    let mut trainer = ContextTrainer::new(&cfg, &init, &tc).expect("trainer");
+    let pairs = toy_pairs(&cfg, 64, 1);
+    let val = toy_pairs(&cfg, 32, 2);
+    let start = trainer.evaluate(&val, 0.0, 8).expect("eval");
+    assert!((start.ce - start.ce_head).abs() < 1e-4, "a fresh context changes the head's CE: {start:?}");
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for _ in 0..120 {
+        let batch: Vec<&ContextPair> = (0..8).map(|_| &pairs[rng.random_range(0..pairs.len())]).collect();
+        trainer.step_on(&batch).expect("step");
+    }
+    let end = trainer.evaluate(&val, 0.0, 8).expect("eval");
+    // with revealed cells the pair's code is known: the CE falls far below the head's
+    assert!(end.ce < 0.5 * start.ce_head, "context CE {} against the head's {}", end.ce, start.ce_head);
+    // nothing revealed: the code cannot be known, the CE stays near a uniform guess over the 4
+    let whole = trainer.evaluate(&val, 1.0, 8).expect("eval");
+    assert!(whole.ce > 0.8 * (4f32).ln(), "first-pass CE {} below what the data allows", whole.ce);
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    trainer.save(dir.path()).expect("save");
+    let resumed = ContextTrainer::resume(dir.path(), None, None).expect("resume");
+    assert_eq!(resumed.step, trainer.step);
+    assert_eq!(resumed.weights(), trainer.weights());
+    // a damaged checkpoint is refused, naming the file
+    let weights = dir.path().join("ckpt/model.safetensors");
+    let mut bytes = std::fs::read(&weights).expect("read");
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0xff;
+    std::fs::write(&weights, bytes).expect("write");
+    let err = ContextTrainer::resume(dir.path(), None, None).expect_err("damaged").to_string();
+    assert!(err.contains("model.safetensors"), "{err}");
+}
+
+#[test]
+fn states_keep_observed_cells_and_leave_one_open() {
+    let cfg = tiny_context_config();
+    let pairs = toy_pairs(&cfg, 1, 3);
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    for _ in 0..200 {
+        let s = draw_states(&pairs[0], 0.0, &mut rng);
+        for (i, st) in s.iter().enumerate() {
+            assert_eq!(*st == CellState::Observed, !pairs[0].missing[i]);
+            if let CellState::Revealed(c) = st {
+                assert_eq!(*c, pairs[0].codes[i]);
+            }
+        }
+        assert!(s.contains(&CellState::Open));
+    }
+    let whole = draw_states(&pairs[0], 1.0, &mut rng);
+    assert!(!whole.iter().any(|s| matches!(s, CellState::Revealed(_))));
+}
+
+#[test]
+fn the_refiner_with_a_context_draws_every_missing_cell_once_and_keeps_observed_pixels() {
+    let cfg = tiny_context_config();
+    let device = sgam_model::default_device();
+    let model = VqModel::new(&cfg, 3, &device).expect("model");
+    let options = RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 1.0, top_k: 0 },
+        cells_per_pass: 3,
+        max_passes: 4,
+        ..RefinerOptions::default()
+    };
+    let mut refiner = VqRefiner::new(model, cfg.clone(), options, device);
+    let (w, h) = (32u32, 32u32);
+    let mut frame = RgbdFrame::empty(w, h);
+    for (i, c) in frame.colour.data.iter_mut().enumerate() {
+        *c = [(i % 7) as f32 / 7.0, 0.5, 0.2];
+    }
+    frame.depth_m.data.iter_mut().for_each(|d| *d = 10.0);
+    // the right half missing
+    let missing: Vec<bool> = (0..(w * h) as usize).map(|i| i % w as usize >= 16).collect();
+    let out = refiner.complete_at(&frame, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).expect("refine");
+    let trace = refiner.trace().clone();
+    let committed: Vec<usize> = trace.passes.iter().flatten().copied().collect();
+    let mut sorted = committed.clone();
+    sorted.sort_unstable();
+    sorted.dedup();
+    assert_eq!(sorted.len(), committed.len(), "a cell committed twice");
+    let want: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
+    assert_eq!(sorted, want, "every missing cell committed once");
+    assert!(trace.passes.len() >= 2, "large holes take several passes");
+    for i in (0..(w * h) as usize).filter(|&i| !missing[i]) {
+        assert_eq!(out.colour.data[i], frame.colour.data[i]);
+    }
+}

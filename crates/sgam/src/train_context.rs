@@ -1,0 +1,319 @@
+//! `sgam train context`: the scene-wide context transformer over the code grid (see
+//! `sgam_model::context` and `sgam_model::context_train`).
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use sgam_model::context::ContextConfig;
+use sgam_model::context_train::{context_pairs, ContextPair, ContextTrainConfig, ContextTrainer};
+use sgam_model::params::from_safetensors_bytes;
+use sgam_pipeline::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
+
+use crate::eval_world::FEATURE_MODEL;
+use crate::progress;
+
+/// Arguments of `sgam train context`.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  sgam train context --run runs/context --steps 6000     # from the bundled model\n  sgam train context --run runs/context --steps 9000 --lr-decay-from 6000   # resume, decayed tail\n  sgam train export runs/context/ckpt/model.safetensors models/compact.safetensors\n\nEverything but the transformer is frozen: the training pairs are recorded from the generator\n(oracle refiner, training scenes) and the model's encoder features of each are computed once,\nso a step costs the transformer alone. Pairs are cached in the run folder (pairs-*.bin).\nRe-running the same command resumes from RUN/ckpt. RUN/log.jsonl has one line per step,\nRUN/val.jsonl the held-out cross-entropy of the first pass (nothing revealed) and of MaskGIT's\nreveal schedule, with the head alone beside them."
+)]
+pub struct ContextArgs {
+    /// Run folder (created; holds the pairs, checkpoints and logs).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Generative model whose encoder, code head, codebook and decoder are kept (default: the
+    /// bundled model). When it has a context, that context is the starting point.
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Token width of a new context.
+    #[arg(long, default_value_t = 128)]
+    pub dim: usize,
+    /// Transformer blocks of a new context.
+    #[arg(long, default_value_t = 4)]
+    pub layers: usize,
+    /// Attention heads of a new context.
+    #[arg(long, default_value_t = 4)]
+    pub heads: usize,
+    /// Total optimisation steps.
+    #[arg(long, default_value_t = 8000)]
+    pub steps: u64,
+    /// Pairs per step.
+    #[arg(long, default_value_t = 16)]
+    pub batch: usize,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 5e-4)]
+    pub lr: f64,
+    /// Start of the half-cosine learning-rate decay (default: constant).
+    #[arg(long, value_name = "STEP")]
+    pub lr_decay_from: Option<u64>,
+    /// Linear learning-rate warm-up, steps.
+    #[arg(long, default_value_t = 200)]
+    pub warmup: u64,
+    /// Share of the pairs shown with their whole hole open (generation's first pass).
+    #[arg(long, default_value_t = 0.3)]
+    pub whole_hole: f32,
+    /// Training pairs to record.
+    #[arg(long, default_value_t = 6000)]
+    pub pairs: usize,
+    /// Validation pairs (another stream of training scenes).
+    #[arg(long, default_value_t = 256)]
+    pub val_pairs: usize,
+    /// Crop side of a pair, pixels (the transformer's window in training).
+    #[arg(long, default_value_t = 128)]
+    pub crop: u32,
+    /// Steps of each recorded generator run.
+    #[arg(long, default_value_t = 40)]
+    pub steps_per_run: usize,
+    /// Training scenes drawn from (seeds 0..N, below the held-out seeds).
+    #[arg(long, default_value_t = 100_000)]
+    pub scenes: u64,
+    /// Seed of the pairs, the initialisation, batch order and reveals.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Checkpoint every N steps.
+    #[arg(long, default_value_t = 250)]
+    pub ckpt_every: u64,
+    /// Validate every N steps (0 = only at the start).
+    #[arg(long, default_value_t = 250)]
+    pub val_every: u64,
+}
+
+fn validate(a: &ContextArgs) -> Result<()> {
+    if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
+        bail!("--scenes {} must be in 1..={HELD_OUT_SEED_BASE} (held-out seeds start there)", a.scenes);
+    }
+    if a.batch == 0 || a.batch > 256 {
+        bail!("--batch {} must be in 1..=256", a.batch);
+    }
+    if a.pairs < a.batch || a.pairs > 200_000 {
+        bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.batch);
+    }
+    if a.val_pairs == 0 || a.val_pairs > 20_000 {
+        bail!("--val-pairs {} must be in 1..=20000", a.val_pairs);
+    }
+    if !(a.lr.is_finite() && a.lr > 0.0 && a.lr < 1.0) {
+        bail!("--lr {} must be a positive number below 1", a.lr);
+    }
+    if !(a.whole_hole.is_finite() && (0.0..=1.0).contains(&a.whole_hole)) {
+        bail!("--whole-hole {} must be a share between 0 and 1", a.whole_hole);
+    }
+    if let Some(from) = a.lr_decay_from {
+        if from >= a.steps {
+            bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
+        }
+    }
+    if a.steps_per_run == 0 || a.steps_per_run > 1000 {
+        bail!("--steps-per-run {} must be in 1..=1000", a.steps_per_run);
+    }
+    if !(16..=256).contains(&a.crop) {
+        bail!("--crop {} must be in 16..=256", a.crop);
+    }
+    Ok(())
+}
+
+/// Runs `sgam train context`.
+pub fn run(a: &ContextArgs) -> Result<()> {
+    validate(a)?;
+    std::fs::create_dir_all(&a.run).with_context(|| format!("{}: cannot create the run folder", a.run.display()))?;
+    let _lock = crate::guard::RunLock::acquire(&a.run)?;
+    crate::guard::remove_stale_temp_files(&a.run, &[])?;
+    let device = sgam_model::default_device();
+    let resuming = ContextTrainer::has_checkpoint(&a.run);
+    let mut trainer = if resuming {
+        let t = ContextTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)
+            .with_context(|| format!("{}: cannot resume", a.run.display()))?;
+        eprintln!("resuming {} at step {}", a.run.display(), t.step);
+        t
+    } else {
+        let bytes = match &a.model {
+            Some(p) => std::fs::read(p).with_context(|| format!("{}: cannot read --model", p.display()))?,
+            None => BUNDLED_MODEL.to_vec(),
+        };
+        let what = a.model.as_ref().map_or("the bundled model".to_string(), |p| p.display().to_string());
+        let (tensors, meta) = from_safetensors_bytes(&bytes).with_context(|| what.clone())?;
+        let json = meta
+            .get(sgam_model::refiner::CONFIG_METADATA_KEY)
+            .with_context(|| format!("{what}: carries no model config"))?;
+        let mut cfg: sgam_model::ModelConfig =
+            serde_json::from_str(json).with_context(|| format!("{what}: its model config cannot be read"))?;
+        if !cfg.code_head {
+            bail!("{what}: not a generative model with a code head (train one with `sgam train sampler`)");
+        }
+        if cfg.context.is_none() {
+            let c = ContextConfig { dim: a.dim, layers: a.layers, heads: a.heads, ..ContextConfig::default() };
+            c.validate().context("--dim / --layers / --heads")?;
+            cfg.context = Some(c);
+        }
+        let tc = ContextTrainConfig {
+            steps: a.steps,
+            batch: a.batch,
+            lr: a.lr,
+            lr_decay_from: a.lr_decay_from,
+            warmup: a.warmup,
+            whole_hole: a.whole_hole,
+            ckpt_every: a.ckpt_every,
+            seed: a.seed,
+            ..ContextTrainConfig::default()
+        };
+        ContextTrainer::new(&cfg, &tensors, &tc).with_context(|| format!("{what}: cannot start training"))?
+    };
+    // the frozen encoder of the model being extended gives the features; the feature model
+    // (the stage-1 encoder) gives the target codes, as for `sgam train sampler`
+    let (target_model, target_config) = sgam_model::refiner::load_model_bytes(FEATURE_MODEL, None, &device)?;
+    let (model, model_config) = sgam_model::refiner::load_model_bytes(
+        &sgam_model::params::to_safetensors_bytes(
+            &trainer.weights(),
+            sgam_model::params::WeightPrecision::F32,
+            Some(sgam_model::refiner::weight_metadata(&trainer.model_config)?),
+        )?,
+        None,
+        &device,
+    )?;
+    if !(a.crop as usize).is_multiple_of(model_config.downsample_factor()) {
+        bail!(
+            "--crop {} must be a multiple of the model's downsampling factor {}",
+            a.crop,
+            model_config.downsample_factor()
+        );
+    }
+    let record = |n: usize, stream: u64, what: &str| -> Result<Vec<ContextPair>> {
+        let key = sgam_pipeline::codepairs::CacheKey {
+            version: 1,
+            pairs: n,
+            steps_per_run: a.steps_per_run,
+            crop: a.crop,
+            scenes: a.scenes,
+            seed: a.seed,
+            stream,
+        };
+        let path = a.run.join(format!("pairs-{stream}.bin"));
+        let cached = if path.exists() { sgam_pipeline::codepairs::read_cache(&path, &key)? } else { None };
+        let pairs = match cached {
+            Some(p) => p,
+            None if resuming && path.exists() => bail!(
+                "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
+                 --steps-per-run / --seed; resume with the options it started with",
+                path.display()
+            ),
+            None => {
+                let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
+                rng.set_stream(stream);
+                let pb = progress::bar(n as u64, what);
+                let pairs = sgam_pipeline::codepairs::collect(
+                    n,
+                    a.steps_per_run,
+                    a.crop,
+                    a.scenes,
+                    (&target_model, &target_config),
+                    &mut rng,
+                    &mut |k| pb.set_position(k as u64),
+                )?;
+                pb.finish_and_clear();
+                sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
+                pairs
+            }
+        };
+        let pb = progress::bar(pairs.len() as u64, "encoder features");
+        let out = context_pairs(&model, &model_config, &pairs, 0.5, 32, &mut |k| pb.set_position(k as u64))?;
+        pb.finish_and_clear();
+        Ok(out)
+    };
+    let started = std::time::Instant::now();
+    let train_pairs = record(a.pairs, 1, "recording training pairs")?;
+    let val_pairs = record(a.val_pairs, 2, "recording validation pairs")?;
+    if train_pairs.is_empty() || val_pairs.is_empty() {
+        bail!("no recorded pair has a missing cell; record more (--pairs, --val-pairs)");
+    }
+    eprintln!(
+        "{} training + {} validation pairs with holes ready in {:.0} s",
+        train_pairs.len(),
+        val_pairs.len(),
+        started.elapsed().as_secs_f64()
+    );
+    let open_log = |name: &str| {
+        std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(a.run.join(name))
+            .with_context(|| format!("{}: cannot open {name}", a.run.display()))
+    };
+    let (mut log, mut val_log) = (open_log("log.jsonl")?, open_log("val.jsonl")?);
+    let steps = trainer.train_config.steps;
+    let pb = progress::bar(steps, "training");
+    pb.set_position(trainer.step);
+    let t0 = std::time::Instant::now();
+    let first = trainer.step;
+    let mut validate = |trainer: &ContextTrainer, pb: &indicatif::ProgressBar| -> Result<()> {
+        let whole = trainer.evaluate(&val_pairs, 1.0, 16)?;
+        let reveal = trainer.evaluate(&val_pairs, 0.0, 16)?;
+        let line = format!(
+            "step {}: validation CE first pass {:.3} (head alone {:.3}, acc {:.3}); with reveals {:.3} (head {:.3}, acc {:.3})",
+            trainer.step, whole.ce, whole.ce_head, whole.acc, reveal.ce, reveal.ce_head, reveal.acc
+        );
+        if pb.is_hidden() {
+            eprintln!("{line}");
+        } else {
+            pb.println(line);
+        }
+        writeln!(
+            val_log,
+            "{}",
+            serde_json::json!({ "step": trainer.step, "first_pass": whole, "reveal": reveal,
+                "wall_s": t0.elapsed().as_secs_f64() })
+        )?;
+        Ok(())
+    };
+    if trainer.step == 0 {
+        validate(&trainer, &pb)?;
+    }
+    // batches of one size: pairs grouped by their latent shape
+    let mut by_shape: std::collections::BTreeMap<[usize; 2], Vec<usize>> = std::collections::BTreeMap::new();
+    for (i, p) in train_pairs.iter().enumerate() {
+        by_shape.entry(p.shape).or_default().push(i);
+    }
+    let groups: Vec<Vec<usize>> = by_shape.into_values().collect();
+    let is_terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let mut mean = (0.0f64, 0.0f64, 0usize);
+    while trainer.step < steps {
+        let g = &groups[trainer.rng.random_range(0..groups.len())];
+        let batch: Vec<&ContextPair> =
+            (0..trainer.train_config.batch).map(|_| &train_pairs[g[trainer.rng.random_range(0..g.len())]]).collect();
+        let r = trainer.step_on(&batch)?;
+        let rate =
+            (trainer.step - first) as f64 * trainer.train_config.batch as f64 / t0.elapsed().as_secs_f64().max(1e-6);
+        writeln!(log, "{}", serde_json::json!({ "report": r, "pairs_per_s": rate }))?;
+        mean = (mean.0 + r.ce as f64, mean.1 + r.ce_head as f64, mean.2 + 1);
+        pb.set_position(r.step);
+        pb.set_message(format!("CE {:.3} (head {:.3}) {:.1} pairs/s", r.ce, r.ce_head, rate));
+        if !is_terminal && r.step % 50 == 0 {
+            eprintln!(
+                "step {} CE {:.3} (head alone {:.3}) over the last {} steps, {:.1} pairs/s",
+                r.step,
+                mean.0 / mean.2.max(1) as f64,
+                mean.1 / mean.2.max(1) as f64,
+                mean.2,
+                rate
+            );
+            mean = (0.0, 0.0, 0);
+        }
+        if r.step % trainer.train_config.ckpt_every.max(1) == 0 {
+            trainer.save(&a.run)?;
+        }
+        if a.val_every > 0 && r.step % a.val_every == 0 {
+            validate(&trainer, &pb)?;
+        }
+    }
+    trainer.save(&a.run)?;
+    pb.finish_and_clear();
+    eprintln!(
+        "trained to step {}; weights: {} (export with: sgam train export {} models/compact.safetensors)",
+        trainer.step,
+        a.run.join("ckpt/model.safetensors").display(),
+        a.run.join("ckpt/model.safetensors").display()
+    );
+    Ok(())
+}
