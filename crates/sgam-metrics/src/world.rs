@@ -16,6 +16,10 @@
 //! - Objects = 8-connected components of occupied new-area cells more than `object_height_m`
 //!   above the ground, of area >= `min_object_area_m2`. Smaller such components are neither
 //!   objects nor ground: they count in no statistic except `new_area_m2`.
+//! - Object shape ([`ObjectShape`]) is read from the object's cells alone: solidity (cells over
+//!   the lattice cells in the convex hull of their centres) and elongation (the axis ratio of
+//!   their covariance). Both are ratios, the same at any cell size; a `compact` object is solid
+//!   and not elongated ([`COMPACT_MIN_SOLIDITY`], [`COMPACT_MAX_ELONGATION`]).
 
 use crate::median;
 use crate::scene::RegionSpec;
@@ -197,6 +201,142 @@ pub struct WorldStats {
     pub ground_rms_mm: f32,
     /// Footprint of every object, m^2, ascending.
     pub object_areas_m2: Vec<f32>,
+    /// Median solidity, median elongation and compact share of the objects (each `None` when
+    /// there are none); [`ShapeSummary::of`] over `object_shapes`.
+    #[serde(default)]
+    pub object_shape: ShapeSummary,
+    /// Shape of every object, in the order of their lowest cell (row-major: y, then x); pooled
+    /// figures over several worlds are [`ShapeSummary::of`] their concatenation.
+    #[serde(default)]
+    pub object_shapes: Vec<ObjectShape>,
+}
+
+/// An object is compact when its solidity is at least this and its elongation at most
+/// [`COMPACT_MAX_ELONGATION`].
+pub const COMPACT_MIN_SOLIDITY: f32 = 0.8;
+
+/// An object is compact when its elongation is at most this and its solidity at least
+/// [`COMPACT_MIN_SOLIDITY`].
+pub const COMPACT_MAX_ELONGATION: f32 = 2.0;
+
+/// Footprint shape of one object: ratios of its height-field cells, free of units.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ObjectShape {
+    /// Object cells / lattice cells whose centres lie inside or on the convex hull of the
+    /// object's cell centres, in `(0, 1]`: 1 for a filled rectangle or a single row of cells.
+    pub solidity: f32,
+    /// `sqrt(lambda_max / lambda_min)` of the 2x2 covariance of the object's cell centres, with
+    /// `cell_m^2 / 12` (the variance of a point uniform in one cell) added to both diagonal
+    /// terms, so a single row stays finite; >= 1, and exactly the side ratio of a filled
+    /// rectangle of cells.
+    pub elongation: f32,
+}
+
+impl ObjectShape {
+    /// True when solidity >= [`COMPACT_MIN_SOLIDITY`] and elongation <= [`COMPACT_MAX_ELONGATION`].
+    pub fn is_compact(&self) -> bool {
+        self.solidity >= COMPACT_MIN_SOLIDITY && self.elongation <= COMPACT_MAX_ELONGATION
+    }
+}
+
+/// Summary of a set of object shapes (one world's, or several worlds' concatenated).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct ShapeSummary {
+    /// Median solidity (mean of the two middle ones for an even count); `None` without objects.
+    pub median_solidity: Option<f32>,
+    /// Median elongation (mean of the two middle ones for an even count); `None` without objects.
+    pub median_elongation: Option<f32>,
+    /// Compact objects / objects, in `[0, 1]`; `None` without objects.
+    pub compact_share: Option<f32>,
+}
+
+impl ShapeSummary {
+    /// The summary of `shapes`.
+    pub fn of(shapes: &[ObjectShape]) -> Self {
+        let solidity: Vec<f32> = shapes.iter().map(|s| s.solidity).collect();
+        let elongation: Vec<f32> = shapes.iter().map(|s| s.elongation).collect();
+        let compact = shapes.iter().filter(|s| s.is_compact()).count();
+        Self {
+            median_solidity: median(&solidity),
+            median_elongation: median(&elongation),
+            compact_share: (!shapes.is_empty()).then(|| compact as f32 / shapes.len() as f32),
+        }
+    }
+}
+
+/// Shape of the object made of `cells`, lattice indices `[ix, iy]` of square cells (duplicates
+/// count once); `None` when `cells` is empty. Exact integer hull and cell count; the covariance
+/// in f64.
+pub fn object_shape(cells: &[[i64; 2]]) -> Option<ObjectShape> {
+    let mut cells = cells.to_vec();
+    cells.sort_unstable();
+    cells.dedup();
+    let n = cells.len() as f64;
+    let hull_cells = lattice_points_in(&convex_hull(&cells));
+    if cells.is_empty() || hull_cells <= 0 {
+        return None;
+    }
+    // covariance in cell units: the uniform cell's variance is 1/12 (cell_m^2 / 12 in metres;
+    // the ratio of eigenvalues does not depend on the unit)
+    let mean = cells.iter().fold([0.0f64; 2], |m, c| [m[0] + c[0] as f64 / n, m[1] + c[1] as f64 / n]);
+    let (mut xx, mut yy, mut xy) = (1.0 / 12.0, 1.0 / 12.0, 0.0);
+    for c in &cells {
+        let (dx, dy) = (c[0] as f64 - mean[0], c[1] as f64 - mean[1]);
+        (xx, yy, xy) = (xx + dx * dx / n, yy + dy * dy / n, xy + dx * dy / n);
+    }
+    let (half_trace, radius) = (0.5 * (xx + yy), (0.25 * (xx - yy).powi(2) + xy * xy).sqrt());
+    Some(ObjectShape {
+        solidity: (n / hull_cells as f64) as f32,
+        elongation: ((half_trace + radius) / (half_trace - radius)).sqrt() as f32,
+    })
+}
+
+/// Convex hull of sorted, distinct lattice points, counter-clockwise, without collinear
+/// vertices (Andrew's monotone chain): one point for one point, the two ends for a segment.
+fn convex_hull(sorted: &[[i64; 2]]) -> Vec<[i64; 2]> {
+    if sorted.len() < 3 {
+        return sorted.to_vec();
+    }
+    let mut hull = half_hull(sorted.iter().copied());
+    hull.extend(half_hull(sorted.iter().rev().copied()));
+    hull
+}
+
+/// The lower hull of points sorted by (x, y) (the upper one for them reversed), without its last
+/// point, which starts the other half.
+fn half_hull(points: impl Iterator<Item = [i64; 2]>) -> Vec<[i64; 2]> {
+    let cross = |o: [i64; 2], a: [i64; 2], b: [i64; 2]| (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+    let mut h: Vec<[i64; 2]> = Vec::new();
+    for p in points {
+        while h.len() >= 2 && cross(h[h.len() - 2], h[h.len() - 1], p) <= 0 {
+            h.pop();
+        }
+        h.push(p);
+    }
+    h.pop();
+    h
+}
+
+/// Lattice points inside or on the closed lattice polygon `hull` (any winding), by Pick's
+/// theorem: `I + B = A + B / 2 + 1`. It also holds for a segment taken as a polygon there and
+/// back (A = 0, B = twice its lattice steps) and for a single point (1); 0 for no points.
+fn lattice_points_in(hull: &[[i64; 2]]) -> i64 {
+    if hull.is_empty() {
+        return 0;
+    }
+    let gcd = |mut a: i64, mut b: i64| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    let (mut twice_area, mut boundary) = (0i64, 0i64);
+    for (i, a) in hull.iter().enumerate() {
+        let b = hull[(i + 1) % hull.len()];
+        twice_area += a[0] * b[1] - a[1] * b[0];
+        boundary += gcd((b[0] - a[0]).abs(), (b[1] - a[1]).abs());
+    }
+    (twice_area.abs() + boundary) / 2 + 1
 }
 
 /// Computes [`WorldStats`] of `mesh` (metres, world frame, z up) outside `exclusion` grown by
@@ -217,6 +357,7 @@ pub fn world_stats(mesh: &TriMesh, exclusion: &Exclusion, cfg: &WorldStatsConfig
     let min_cells = ((cfg.min_object_area_m2 / cell_area) - 1e-4).ceil().max(1.0) as usize;
     let mut object = vec![false; raised.len()];
     let mut object_areas_m2 = Vec::new();
+    let mut object_shapes = Vec::new();
     let mut seen = vec![false; raised.len()];
     for start in 0..raised.len() {
         if !raised[start] || seen[start] {
@@ -226,6 +367,8 @@ pub fn world_stats(mesh: &TriMesh, exclusion: &Exclusion, cfg: &WorldStatsConfig
         if component.len() >= min_cells {
             component.iter().for_each(|&i| object[i] = true);
             object_areas_m2.push(component.len() as f32 * cell_area);
+            let cells: Vec<[i64; 2]> = component.iter().map(|&i| [(i % hf.nx) as i64, (i / hf.nx) as i64]).collect();
+            object_shapes.extend(object_shape(&cells));
         }
     }
     object_areas_m2.sort_by(f32::total_cmp);
@@ -254,6 +397,8 @@ pub fn world_stats(mesh: &TriMesh, exclusion: &Exclusion, cfg: &WorldStatsConfig
         object_saturation: if sat_n > 0 { (sat_sum / sat_n as f64) as f32 } else { 0.0 },
         ground_rms_mm,
         object_areas_m2,
+        object_shape: ShapeSummary::of(&object_shapes),
+        object_shapes,
     }
 }
 

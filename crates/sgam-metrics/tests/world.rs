@@ -11,7 +11,8 @@ use rand::{Rng, SeedableRng};
 use sgam_core::TriMesh;
 use sgam_metrics::scene::{cosine_distance, region_histograms, scene_metrics};
 use sgam_metrics::world::{
-    height_field, new_area_points, new_area_region_spec, world_stats, Exclusion, WorldStats, WorldStatsConfig,
+    height_field, new_area_points, new_area_region_spec, object_shape, world_stats, Exclusion, ObjectShape,
+    ShapeSummary, WorldStats, WorldStatsConfig,
 };
 
 const CELL: f32 = 0.1;
@@ -398,4 +399,114 @@ fn lumps_covering_most_of_the_area_leave_the_ground_on_the_ground() {
     assert!((s.ground_height_m - GROUND_Z).abs() < 1e-6, "{s:?}");
     assert!(s.ground_rms_mm < 1.0, "{s:?}");
     assert_eq!(s.objects, 3, "{s:?}");
+}
+
+/// World statistics of a 12 x 12 m flat ground with 1 m tall boxes of the given footprints
+/// `[x0, y0, x1, y1]`. Footprints from `a.03` to `b.97` m cover exactly the cells `a*10 ..= b*10+9`
+/// (no vertex within 3 cm of a cell boundary), so each object's cells are known exactly.
+fn boxes_world(footprints: &[[f32; 4]]) -> WorldStats {
+    let mut m = ground(0.025, 0.025, 11.975, 11.975, GROUND_Z, Density::Fine);
+    for [x0, y0, x1, y1] in footprints {
+        m.append(&standing(*x0, *y0, *x1, *y1, 1.0, [0.8, 0.2, 0.5], Density::Fine));
+    }
+    world_stats(&m, &Exclusion::none(), &WorldStatsConfig::default())
+}
+
+const SQUARE: [f32; 4] = [1.03, 1.03, 2.97, 2.97]; // 20 x 20 cells
+const STRIP: [f32; 4] = [4.03, 1.03, 4.97, 8.97]; // 10 x 80 cells: 1 x 8 m
+
+#[test]
+fn square_object_is_solid_round_and_compact() {
+    let s = boxes_world(&[SQUARE]);
+    assert_eq!(s.object_areas_m2.len(), 1, "{s:?}");
+    assert!((s.object_areas_m2[0] - 4.0).abs() < 1e-4, "{s:?}");
+    let shape = s.object_shapes[0];
+    // a filled square of cells is its own hull; its covariance is isotropic
+    assert_eq!(shape.solidity, 1.0, "{shape:?}");
+    assert!((shape.elongation - 1.0).abs() < 1e-5, "{shape:?}");
+    assert!(shape.is_compact());
+    assert_eq!(s.object_shape.compact_share, Some(1.0));
+}
+
+#[test]
+fn l_shaped_object_has_the_hand_counted_solidity() {
+    // a 3 x 1 m bar and a 1 x 2 m bar on top of its left end: cells (ix, iy) of
+    // [0, 29] x [0, 9] and [0, 9] x [10, 29] (taken from x = 1 m, y = 1 m): 300 + 200 = 500
+    let s = boxes_world(&[[1.03, 1.03, 3.97, 1.97], [1.03, 2.03, 1.97, 3.97]]);
+    assert_eq!(s.objects, 1, "{s:?}");
+    assert!((s.object_areas_m2[0] - 5.0).abs() < 1e-4, "{s:?}");
+    let shape = s.object_shapes[0];
+    // hull of the centres: (0,0) (29,0) (29,9) (9,29) (0,29), the 30 x 30 square of centres
+    // cut by x + y <= 38: 900 centres minus the 1 + 2 + ... + 20 = 210 beyond the cut = 690.
+    // The counts are exact integers; only the division rounds (f32: ~1e-7), hence 1e-5.
+    assert!((shape.solidity - 500.0 / 690.0).abs() < 1e-5, "{shape:?}");
+    // covariance by hand (cell units): var x = var y = 72.25 + 1/12, cov = -36, so the
+    // eigenvalues are 325/3 and 109/3. Not elongated: only its solidity makes it not compact.
+    assert!((shape.elongation - (325.0f32 / 109.0).sqrt()).abs() < 1e-4, "{shape:?}");
+    assert!(shape.elongation < 2.0 && !shape.is_compact(), "{shape:?}");
+    assert_eq!(s.object_shape.compact_share, Some(0.0));
+}
+
+#[test]
+fn strip_is_elongated_and_not_compact() {
+    // a 1 x 8 m strip, and a single column of 1 x 30 cells (4 cm wide: one cell across)
+    let s = boxes_world(&[STRIP, [6.03, 1.03, 6.07, 3.97]]);
+    assert_eq!(s.objects, 2, "{s:?}");
+    let (strip, row) = (s.object_shapes[0], s.object_shapes[1]);
+    // variances (n^2 - 1)/12 + 1/12 = n^2/12 per axis: the elongation is the side ratio
+    assert_eq!(strip.solidity, 1.0, "{strip:?}");
+    assert!((strip.elongation - 8.0).abs() < 1e-3 && strip.elongation >= 2.0, "{strip:?}");
+    assert!(!strip.is_compact());
+    // one row: the hull is a segment holding every cell, and the guard keeps the ratio finite
+    assert_eq!(row.solidity, 1.0, "{row:?}");
+    assert!((row.elongation - 30.0).abs() < 1e-2, "{row:?}");
+    assert_eq!(s.object_shape.compact_share, Some(0.0));
+}
+
+#[test]
+fn square_and_strip_world_has_half_its_objects_compact() {
+    let s = boxes_world(&[SQUARE, STRIP]);
+    assert_eq!(s.objects, 2, "{s:?}");
+    let summary = s.object_shape;
+    assert_eq!(summary.compact_share, Some(0.5), "{summary:?}");
+    assert_eq!(summary.median_solidity, Some(1.0), "{summary:?}");
+    // the mean of the two middle values (1 and 8)
+    assert!(summary.median_elongation.is_some_and(|e| (e - 4.5).abs() < 1e-3), "{summary:?}");
+    // pooled over worlds: the objects concatenated, not the shares averaged (which gives 0.25)
+    let l = boxes_world(&[[1.03, 1.03, 3.97, 1.97], [1.03, 2.03, 1.97, 3.97]]);
+    let pooled: Vec<ObjectShape> = s.object_shapes.iter().chain(&l.object_shapes).copied().collect();
+    let share = ShapeSummary::of(&pooled).compact_share;
+    assert!(share.is_some_and(|c| (c - 1.0 / 3.0).abs() < 1e-6), "{share:?}");
+    // no objects: no shape figures
+    let empty = boxes_world(&[]);
+    assert_eq!(empty.objects, 0);
+    assert_eq!(
+        empty.object_shape,
+        ShapeSummary { median_solidity: None, median_elongation: None, compact_share: None }
+    );
+}
+
+#[test]
+fn object_shape_is_a_bounded_ratio_that_ignores_position_and_orientation() {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(26);
+    for case in 0..200 {
+        let n = rng.random_range(1..60);
+        let cells: Vec<[i64; 2]> = (0..n).map(|_| [rng.random_range(0..15), rng.random_range(0..15)]).collect();
+        let Some(a) = object_shape(&cells) else { panic!("case {case}: no shape for {n} cells") };
+        assert!(a.solidity > 0.0 && a.solidity <= 1.0 && a.elongation >= 1.0 - 1e-6, "case {case}: {a:?}");
+        let moved: Vec<[i64; 2]> = cells.iter().map(|[x, y]| [x + 1000, y - 37]).collect();
+        let turned: Vec<[i64; 2]> = cells.iter().map(|[x, y]| [-y, *x]).collect();
+        let mirrored: Vec<[i64; 2]> = cells.iter().map(|[x, y]| [*y, *x]).collect();
+        let doubled: Vec<[i64; 2]> = cells.iter().chain(&cells).copied().collect();
+        for (name, other) in [("moved", moved), ("turned", turned), ("mirrored", mirrored), ("doubled", doubled)] {
+            let Some(b) = object_shape(&other) else { panic!("case {case}: {name} has no shape") };
+            // the hull count is exact integer arithmetic; the covariance is f64
+            assert_eq!(a.solidity, b.solidity, "case {case} {name}");
+            assert!((a.elongation - b.elongation).abs() <= 1e-5 * a.elongation, "case {case} {name}: {a:?} {b:?}");
+        }
+    }
+    assert_eq!(object_shape(&[]), None);
+    assert_eq!(object_shape(&[[3, 4]]), Some(ObjectShape { solidity: 1.0, elongation: 1.0 }));
+    // a diagonal row of 8-connected cells is its own hull (a segment)
+    assert_eq!(object_shape(&[[0, 0], [1, 1], [2, 2], [3, 3]]).map(|s| s.solidity), Some(1.0));
 }

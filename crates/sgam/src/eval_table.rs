@@ -148,7 +148,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
         let g = &world["generated"];
         let sc = &world["scene"];
         lines.push(format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} / {} / {} | {} / {} | {} |",
             row.name,
             f(&one["psnr"], 2),
             f(&one["ssim"], 3),
@@ -162,6 +162,9 @@ pub fn run(a: &TableArgs) -> Result<()> {
             f(&g["median_object_area_m2"], 2),
             f(&g["object_saturation"], 3),
             f(&g["ground_rms_mm"], 0),
+            f(&g["object_shape"]["median_solidity"], 2),
+            f(&g["object_shape"]["median_elongation"], 2),
+            f(&g["object_shape"]["compact_share"], 2),
             f(&world["loop"]["psnr"], 1),
             f(&world["loop"]["ssim"], 3),
             f(&world["step_ms_median"], 0),
@@ -179,8 +182,8 @@ pub fn run(a: &TableArgs) -> Result<()> {
         a.steps,
         a.one_step_scenes
     );
-    md += "| refiner | PSNR | SSIM | KID | JSD | MMD | COV | MinDist | 1-NNA | objects / 100 m² | median footprint m² | object saturation | ground RMS mm | loop PSNR / SSIM | ms / step |\n";
-    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+    md += "| refiner | PSNR | SSIM | KID | JSD | MMD | COV | MinDist | 1-NNA | objects / 100 m² | median footprint m² | object saturation | ground RMS mm | object solidity / elongation / compact share | loop PSNR / SSIM | ms / step |\n";
+    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
     for l in &lines {
         md += l;
         md += "\n";

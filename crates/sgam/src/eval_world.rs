@@ -26,7 +26,7 @@ use clap::Args;
 use serde::Serialize;
 use serde_json::json;
 use sgam_core::{TriMesh, Vec2, Vec3};
-use sgam_metrics::world::{Exclusion, WorldStats, WorldStatsConfig};
+use sgam_metrics::world::{Exclusion, ShapeSummary, WorldStats, WorldStatsConfig};
 
 use crate::generate::{GenerateArgs, RefinerKind, TrajectoryKind};
 use sgam_pipeline::HELD_OUT_SEED_BASE;
@@ -450,6 +450,8 @@ pub struct Pooled {
     pub object_saturation: f64,
     /// Root of the mean over seeds of the squared ground RMS, mm.
     pub ground_rms_mm: f64,
+    /// Median solidity, median elongation and compact share over all seeds' objects.
+    pub object_shape: ShapeSummary,
 }
 
 fn quantile(v: &[f32], q: f64) -> f64 {
@@ -481,6 +483,7 @@ fn pool(stats: &[WorldStats]) -> Pooled {
         object_cover: if area > 0.0 { covered / area } else { 0.0 },
         object_saturation: if sats.is_empty() { 0.0 } else { sats.iter().sum::<f64>() / sats.len() as f64 },
         ground_rms_mm: if rms2.is_empty() { f64::NAN } else { (rms2.iter().sum::<f64>() / rms2.len() as f64).sqrt() },
+        object_shape: ShapeSummary::of(&stats.iter().flat_map(|s| s.object_shapes.clone()).collect::<Vec<_>>()),
     }
 }
 
@@ -589,6 +592,10 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
             "median_object_area": ratio(gp.median_object_area_m2, op.median_object_area_m2),
             "object_saturation": ratio(gp.object_saturation, op.object_saturation),
             "ground_rms": ratio(gp.ground_rms_mm, op.ground_rms_mm),
+            "compact_object_share": ratio(
+                gp.object_shape.compact_share.map_or(f64::NAN, f64::from),
+                op.object_shape.compact_share.map_or(f64::NAN, f64::from),
+            ),
         },
         "scene": scene, "regions": { "generated": gen_regions.len(), "oracle": ref_regions.len(), "size_m": args.region_size },
         "kid": kid, "kid_frames": { "generated": gf.len(), "oracle": rf.len() },
@@ -630,6 +637,7 @@ pub fn summary_text(v: &serde_json::Value) -> String {
     s += &row("object cover", "object_cover", "");
     s += &row("object saturation", "object_saturation", "   (bar >= 0.6x)");
     s += &row("ground RMS (mm)", "ground_rms_mm", "   (bar <= 2x)");
+    s += &shape_rows(v);
     let sc = &v["scene"];
     s += &format!(
         "scene metrics ({} vs {} regions of {} m): JSD {:.4}  MMD {:.4}  COV {:.3}  MinDist {:.4}  1-NNA {:.3}\n",
@@ -657,6 +665,40 @@ pub fn summary_text(v: &serde_json::Value) -> String {
         v["wall_s"].as_f64().unwrap_or(f64::NAN),
         v["out"].as_str().unwrap_or("?"),
     );
+    s
+}
+
+/// The object shape rows of [`summary_text`]: pooled over seeds (the compact share with its
+/// ratio to the oracle's), then one line per seed; "-" where a world has no objects.
+fn shape_rows(v: &serde_json::Value) -> String {
+    let num = |x: &serde_json::Value, digits: usize| x.as_f64().map_or("-".into(), |x| format!("{x:.digits$}"));
+    let mut s = String::new();
+    for (name, key) in [
+        ("median object solidity", "median_solidity"),
+        ("median object elongation", "median_elongation"),
+        ("compact object share", "compact_share"),
+    ] {
+        let (g, o) = (&v["generated"]["object_shape"][key], &v["oracle"]["object_shape"][key]);
+        let ratio = match (key, g.as_f64(), o.as_f64()) {
+            ("compact_share", Some(g), Some(o)) => format!(" {:>8.2}x", g / o),
+            _ => String::new(),
+        };
+        s += &format!("  {name:<28} {:>10} {:>10}{ratio}\n", num(g, 3), num(o, 3));
+    }
+    let triple = |w: &serde_json::Value| {
+        let sh = &w["object_shape"];
+        format!(
+            "{} / {} / {}",
+            num(&sh["median_solidity"], 2),
+            num(&sh["median_elongation"], 2),
+            num(&sh["compact_share"], 2)
+        )
+    };
+    s += "  per seed, solidity / elongation / compact share: generated | oracle\n";
+    for p in v["per_seed"].as_array().into_iter().flatten() {
+        let seed = format!("seed {}", p["seed_scene"]);
+        s += &format!("    {seed:<26} {} | {}\n", triple(&p["generated"]), triple(&p["oracle"]));
+    }
     s
 }
 
