@@ -9,12 +9,12 @@ use clap::Args;
 
 use crate::eval::OneStepArgs;
 use crate::eval_world::WorldArgs;
-use crate::generate::{GenerateArgs, RefinerKind};
+use crate::generate::{GenerateArgs, RefinerKind, TrajectoryKind};
 
 /// Arguments of `sgam eval table`.
 #[derive(Debug, Args)]
 #[command(
-    after_help = "Example:\n  sgam eval table --out runs/table      # writes runs/table/table.md and overviews.png\n\nRows: the bundled model sampled (default T) and argmin (T = 0), the null stand-in (push-pull),\n--no-map (warp from the previous frame only), --no-refine (guidance fused with its holes) and\nthe oracle. World columns come from `eval world` (held-out seeds, against the oracle), image\ncolumns from `eval one-step`."
+    after_help = "Example:\n  sgam eval table --out runs/table      # writes runs/table/table.md and overviews.png\n\nRows: the bundled model sampled (default T) and argmin (T = 0), the null stand-in (push-pull),\n--no-map (warp from the previous frame only), --no-refine (guidance fused with its holes) and\nthe oracle. World columns come from `eval world` (held-out seeds, against the oracle), image\ncolumns from `eval one-step`. A second table follows the first row along each of --trajectories\n(against the oracle along the same one), every figure marked against its bar; overviews.png\nshows the first table's worlds, each labelled with its row."
 )]
 pub struct TableArgs {
     /// Held-out seeds per world evaluation.
@@ -32,6 +32,12 @@ pub struct TableArgs {
     /// Output folder (worlds, table.md, table.json, overviews.png).
     #[arg(long, default_value = "runs/table")]
     pub out: PathBuf,
+    /// Trajectories of the second table, comma-separated, each once (not `file`: it needs a pose
+    /// file): the model (first row) grown along each with the same seeds and steps, against the
+    /// oracle along the same one; worlds kept and reused in OUT/trajectory-NAME (the zig-zag's
+    /// are the first row's).
+    #[arg(long, value_name = "LIST", value_delimiter = ',', default_value = "zigzag", value_parser = crate::eval_trajectories::trajectory_parser())]
+    pub trajectories: Vec<TrajectoryKind>,
 }
 
 struct Row {
@@ -41,6 +47,9 @@ struct Row {
     no_map: bool,
     no_refine: bool,
 }
+
+/// The row the trajectory table follows (`ROWS[MODEL_ROW]`): the model as generation runs it.
+const MODEL_ROW: usize = 0;
 
 const ROWS: [Row; 6] = [
     Row {
@@ -90,35 +99,14 @@ fn f(v: &serde_json::Value, digits: usize) -> String {
 
 /// Runs `sgam eval table`.
 pub fn run(a: &TableArgs) -> Result<()> {
+    crate::eval_trajectories::check(&a.trajectories)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
     let mut lines = Vec::new();
     let mut json_rows = Vec::new();
     let mut overviews = Vec::new();
     for row in &ROWS {
         eprintln!("== {}", row.name);
-        let wa = WorldArgs {
-            seeds: a.seeds,
-            first_seed: sgam_pipeline::HELD_OUT_SEED_BASE,
-            steps: a.steps,
-            trajectory: crate::generate::TrajectoryKind::Zigzag,
-            step: None,
-            refiner: row.refiner,
-            model: a.model.clone(),
-            temperature: row.temperature,
-            no_map: row.no_map,
-            no_refine: row.no_refine,
-            ground_snap: crate::generate::DEFAULT_GROUND_SNAP_M,
-            cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
-            top_k: crate::generate::DEFAULT_TOP_K,
-            within_temperature: crate::generate::DEFAULT_WITHIN_TEMPERATURE,
-            flying_pixels: crate::generate::DEFAULT_FLYING_PIXELS,
-            free_space: crate::generate::DEFAULT_FREE_SPACE,
-            paper: false,
-            region_size: 5.0,
-            out: Some(a.out.clone()),
-            keep_snapshots: false,
-            json: true,
-        };
+        let wa = world_args(a, row);
         let world = crate::eval_world::evaluate(&wa)?;
         let one = if row.refiner == RefinerKind::Oracle || row.no_map {
             serde_json::Value::Null
@@ -171,7 +159,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
         ));
         let label_dir = a.out.join(format!("seed-{}", sgam_pipeline::HELD_OUT_SEED_BASE));
         let label = if row.refiner == RefinerKind::Oracle { "oracle".to_string() } else { wa_label(&wa) };
-        overviews.push(label_dir.join(label).join("overview.png"));
+        overviews.push((label_dir.join(label).join("overview.png"), row.name));
         json_rows.push(serde_json::json!({ "row": row.name, "world": world, "one_step": one }));
     }
     let mut md = String::new();
@@ -188,9 +176,19 @@ pub fn run(a: &TableArgs) -> Result<()> {
         md += l;
         md += "\n";
     }
+    let trajectories = crate::eval_trajectories::evaluate(
+        &a.trajectories,
+        &world_args(a, &ROWS[MODEL_ROW]),
+        &json_rows[MODEL_ROW]["world"],
+        &a.out,
+    )?;
+    md += "\n";
+    md += &crate::eval_trajectories::markdown(&trajectories);
     let md_path = a.out.join("table.md");
     sgam_io::write_atomic(&md_path, |w| w.write_all(md.as_bytes()))?;
-    let json = serde_json::to_vec_pretty(&json_rows)?;
+    let json = serde_json::to_vec_pretty(
+        &serde_json::json!({ "rows": json_rows, "trajectories": crate::eval_trajectories::to_json(&trajectories) }),
+    )?;
     sgam_io::write_atomic(&a.out.join("table.json"), |w| w.write_all(&json))?;
     let pic = a.out.join("overviews.png");
     write_overviews(&overviews, &pic)?;
@@ -199,16 +197,48 @@ pub fn run(a: &TableArgs) -> Result<()> {
     Ok(())
 }
 
+/// `eval world`'s arguments for `row`: the table's seeds, steps and model along the zig-zag, the
+/// generation defaults otherwise.
+fn world_args(a: &TableArgs, row: &Row) -> WorldArgs {
+    WorldArgs {
+        seeds: a.seeds,
+        first_seed: sgam_pipeline::HELD_OUT_SEED_BASE,
+        steps: a.steps,
+        trajectory: TrajectoryKind::Zigzag,
+        step: None,
+        refiner: row.refiner,
+        model: a.model.clone(),
+        temperature: row.temperature,
+        no_map: row.no_map,
+        no_refine: row.no_refine,
+        ground_snap: crate::generate::DEFAULT_GROUND_SNAP_M,
+        cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
+        top_k: crate::generate::DEFAULT_TOP_K,
+        within_temperature: crate::generate::DEFAULT_WITHIN_TEMPERATURE,
+        flying_pixels: crate::generate::DEFAULT_FLYING_PIXELS,
+        free_space: crate::generate::DEFAULT_FREE_SPACE,
+        paper: false,
+        region_size: 5.0,
+        out: Some(a.out.clone()),
+        keep_snapshots: false,
+        loop_out: None,
+        json: true,
+    }
+}
+
 fn wa_label(wa: &WorldArgs) -> String {
     wa.label()
 }
 
-/// The overview pictures side by side, 3 per line, each scaled to 480 px wide.
-fn write_overviews(paths: &[PathBuf], out: &std::path::Path) -> Result<()> {
+/// The overview pictures side by side, 3 per line, each scaled to 480 px wide and labelled
+/// underneath.
+fn write_overviews(paths: &[(PathBuf, &str)], out: &std::path::Path) -> Result<()> {
     let tiles: Vec<image::RgbImage> = paths
         .iter()
-        .filter_map(|p| image::open(p).ok())
-        .map(|i| i.resize(480, 300, image::imageops::FilterType::Triangle).to_rgb8())
+        .filter_map(|(p, label)| Some((image::open(p).ok()?, label)))
+        .map(|(i, label)| {
+            crate::caption::with_caption(&i.resize(480, 300, image::imageops::FilterType::Triangle).to_rgb8(), label)
+        })
         .collect();
     if tiles.is_empty() {
         return Ok(());
@@ -227,4 +257,16 @@ fn write_overviews(paths: &[PathBuf], out: &std::path::Path) -> Result<()> {
         .context("encoding the overview picture")?;
     sgam_io::write_atomic(out, |w| w.write_all(&bytes))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_row_name_is_drawn_in_the_caption_font() {
+        for row in &ROWS {
+            assert!(row.name.chars().all(|c| crate::caption::glyph(c).is_some()), "{}", row.name);
+        }
+    }
 }

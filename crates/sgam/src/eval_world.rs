@@ -105,6 +105,10 @@ pub struct WorldArgs {
     /// its mesh, frames and run.json, and never resumed.
     #[arg(long)]
     pub keep_snapshots: bool,
+    /// Folder of the loop-consistency runs, which do not depend on the trajectory (default: the
+    /// worlds' folder); eval table's trajectory rows share the zig-zag's.
+    #[arg(skip)]
+    pub loop_out: Option<PathBuf>,
     /// Print only the JSON line.
     #[arg(long)]
     pub json: bool,
@@ -516,6 +520,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
     args.validate()?;
     let (seeds, steps) = args.seeds_steps();
     let root = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/eval-world"));
+    let loop_root = args.loop_out.clone().unwrap_or_else(|| root.clone());
     let label = args.label();
     let cfg = WorldStatsConfig::default();
     let exclusion = Exclusion { polygon_xy_m: seed_footprint(256) };
@@ -560,7 +565,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
             gen_features,
             ref_features,
             step_ms: median_step_ms(&gen_dir),
-            loop_psnr_ssim: loop_consistency(args, scene, args.refiner, &label, &root)?,
+            loop_psnr_ssim: loop_consistency(args, scene, args.refiner, &label, &loop_root)?,
         });
     }
     let gen_stats: Vec<WorldStats> = results.iter().map(|r| r.generated.clone()).collect();

@@ -5,9 +5,11 @@
 //! `sgam-model`, `sgam-metrics`, `sgam-io`).
 
 mod bench;
+mod caption;
 mod convert;
 mod eval;
 mod eval_table;
+mod eval_trajectories;
 mod eval_world;
 mod fuse;
 mod generate;

@@ -1,0 +1,85 @@
+//! `sgam eval table`: the baselines table and the trajectory table.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+#[test]
+fn eval_table_refuses_unknown_repeated_and_file_trajectories_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("table");
+    for (list, needle) in [
+        ("zigzag,loop", "invalid value 'loop' for '--trajectories"),
+        ("file", "invalid value 'file' for '--trajectories"),
+        ("line,circle,line", "--trajectories lists line twice"),
+        ("", "--trajectories"),
+    ] {
+        let o = common::sgam(&["eval", "table", "--trajectories", list, "--out", out.to_str().unwrap()]);
+        assert!(!o.status.success(), "--trajectories {list:?} succeeded");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(needle), "--trajectories {list:?}: {err}");
+        assert!(!out.exists(), "--trajectories {list:?} started work in {}", out.display());
+    }
+}
+
+#[test]
+fn a_table_along_two_trajectories_has_one_marked_row_for_each_and_labelled_overviews() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("table");
+    let o = common::sgam(&[
+        "eval",
+        "table",
+        "--seeds",
+        "1",
+        "--steps",
+        "10",
+        "--one-step-scenes",
+        "1",
+        "--trajectories",
+        "zigzag,line",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // table.md: the baselines table, then one row per trajectory, in the listed order, each
+    // figure with a bar marked met or missed
+    let md = std::fs::read_to_string(out.join("table.md")).unwrap();
+    let (_, second) = md.split_once("| trajectory |").expect(&md);
+    let rows: Vec<&str> = second.lines().filter(|l| l.starts_with("| ")).collect();
+    assert_eq!(rows.len(), 2, "{second}");
+    assert!(rows[0].starts_with("| zigzag | ") && rows[1].starts_with("| line | "), "{second}");
+    for row in &rows {
+        assert_eq!(row.matches(" | ").count(), 8, "{row}");
+        assert!(row.contains('✓') || row.contains('✗') || row.contains('?'), "no marks: {row}");
+    }
+    assert!(second.contains("Bars: zigzag: "), "{second}");
+    // table.json: the zig-zag row is the first baseline row's evaluation; the line's worlds are
+    // grown along the line under trajectory-line, sharing the zig-zag's loop-consistency run
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("table.json")).unwrap()).unwrap();
+    let t = j["trajectories"].as_array().unwrap();
+    assert_eq!(t.len(), 2);
+    assert_eq!(t[0]["trajectory"], "zigzag");
+    assert_eq!(t[0]["world"], j["rows"][0]["world"]);
+    assert_eq!(t[1]["trajectory"], "line");
+    assert_eq!(t[1]["world"]["trajectory"], "line");
+    assert_eq!(t[1]["world"]["refiner"], j["rows"][0]["world"]["refiner"]);
+    assert_ne!(t[1]["world"]["oracle"], t[0]["world"]["oracle"], "the line's oracle is its own");
+    assert!(t[1]["figures"]["objects_per_100m2"]["bar"].is_string(), "{}", t[1]["figures"]);
+    let line_seed = out.join("trajectory-line").join("seed-1000000");
+    assert!(line_seed.join("oracle").join("mesh.ply").exists(), "{}", line_seed.display());
+    let grown: Vec<String> =
+        std::fs::read_dir(&line_seed).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert!(!grown.iter().any(|n| n.ends_with("-loop")), "{grown:?}");
+    assert_eq!(t[1]["world"]["loop"], t[0]["world"]["loop"]);
+    // overviews.png: six panels, three per line, each with a light caption band whose text
+    // is near-black
+    let pic = image::open(out.join("overviews.png")).unwrap().to_rgb8();
+    assert_eq!(pic.width(), 3 * 480);
+    let panel_h = pic.height() / 2;
+    assert!(panel_h > 300, "no caption band: {}x{}", pic.width(), pic.height());
+    for panel in 0..6u32 {
+        let (x0, y0) = ((panel % 3) * 480, (panel / 3) * panel_h + 300);
+        let band: Vec<_> = (y0..y0 + panel_h - 300).flat_map(|y| (x0..x0 + 480).map(move |x| (x, y))).collect();
+        let ink = band.iter().filter(|(x, y)| pic.get_pixel(*x, *y).0.iter().all(|c| *c < 60)).count();
+        assert!(ink > 100, "panel {panel} has no label ({ink} dark pixels)");
+    }
+}
