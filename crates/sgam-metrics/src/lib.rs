@@ -12,7 +12,8 @@
 //!   point-cloud GAN metrics of Achlioptas et al.: JSD, MMD, COV, MinDist, 1-NNA.
 //! - World metrics ([`world`]) read a whole generated mesh (z up) as a 10 cm height field and
 //!   report, outside the seed's footprint, objects per 100 m^2, their footprints and colour
-//!   saturation, and ground roughness.
+//!   saturation, their shape (solidity against the convex hull, elongation, the compact share),
+//!   and ground roughness.
 //! - [`kid`]: kernel inception distance on any feature vectors (weight-free when the features
 //!   come from our own encoder).
 

@@ -80,6 +80,10 @@ pub struct ContextArgs {
     /// Validate every N steps (0 = only at the start).
     #[arg(long, default_value_t = 250)]
     pub val_every: u64,
+    /// Stop (checkpointed, resumable) after this many seconds of training, pairs excluded:
+    /// fits a run to a session or a lent accelerator's minutes.
+    #[arg(long, value_name = "SECONDS")]
+    pub time_limit: Option<f64>,
 }
 
 fn validate(a: &ContextArgs) -> Result<()> {
@@ -104,6 +108,11 @@ fn validate(a: &ContextArgs) -> Result<()> {
     if let Some(from) = a.lr_decay_from {
         if from >= a.steps {
             bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
+        }
+    }
+    if let Some(t) = a.time_limit {
+        if !(t.is_finite() && t > 0.0) {
+            bail!("--time-limit {t} must be a positive number of seconds");
         }
     }
     if a.steps_per_run == 0 || a.steps_per_run > 1000 {
@@ -279,6 +288,10 @@ pub fn run(a: &ContextArgs) -> Result<()> {
     let is_terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let mut mean = (0.0f64, 0.0f64, 0usize);
     while trainer.step < steps {
+        if a.time_limit.is_some_and(|limit| t0.elapsed().as_secs_f64() >= limit) {
+            eprintln!("--time-limit reached at step {}", trainer.step);
+            break;
+        }
         let g = &groups[trainer.rng.random_range(0..groups.len())];
         let batch: Vec<&ContextPair> =
             (0..trainer.train_config.batch).map(|_| &train_pairs[g[trainer.rng.random_range(0..g.len())]]).collect();

@@ -1,0 +1,86 @@
+//! What the bundled model grows: a pin of its weights, a short world that must hold solid
+//! objects on a flat ground (bounds measured and written beside the test), and sampling seeds
+//! that change the world while one seed repeats it.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use common::ok;
+
+/// CRC-32 of `models/compact.safetensors`. The bounds of
+/// [`a_short_world_from_the_bundled_model_holds_solid_objects_on_a_flat_ground`] were measured
+/// with these weights: a new bundled model changes this pin and re-measures them (docs/MODEL.md).
+const BUNDLED_CRC32: u32 = 0x98e7_4630;
+/// The world: a training scene (never a held-out one), the zig-zag, this many steps.
+const WORLD_SEED: u64 = 21;
+const WORLD_STEPS: usize = 120;
+/// Bounds, measured with the pinned weights on this world (release build, 2026-12-03: 9
+/// objects, median solidity 0.71, ground 42.7 mm against the oracle's 31.1 = 1.37x, p90
+/// footprint 5.7 m2 against the oracle's 2.7) and set with a margin for other builds' rounding.
+/// The pinned model grows no compact object here (compact share 0.0 against the oracle's):
+/// issue 26 asks for compact ones, and a model that grows them raises this test's bound.
+const MIN_OBJECTS: usize = 5;
+const MIN_MEDIAN_SOLIDITY: f64 = 0.6;
+const MAX_GROUND_RATIO: f64 = 2.0;
+const MAX_P90_AREA_M2: f64 = 12.0;
+
+#[test]
+fn the_bundled_weights_are_the_ones_the_bounds_were_measured_with() {
+    let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/compact.safetensors")).unwrap();
+    assert_eq!(
+        crc32fast::hash(&bytes),
+        BUNDLED_CRC32,
+        "models/compact.safetensors changed: re-measure the world bounds below and update the pin"
+    );
+}
+
+#[test]
+fn a_short_world_from_the_bundled_model_holds_solid_objects_on_a_flat_ground() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let steps = WORLD_STEPS.to_string();
+    let seed = WORLD_SEED.to_string();
+    let o = common::sgam(&[
+        "eval",
+        "world",
+        "--first-seed",
+        &seed,
+        "--seeds",
+        "1",
+        "--steps",
+        &steps,
+        "--out",
+        out,
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
+    let g = &v["generated"];
+    let new_area = g["new_area_m2"].as_f64().unwrap();
+    let objects = (g["objects_per_100m2"].as_f64().unwrap() * new_area / 100.0).round() as usize;
+    let shape = &g["object_shape"];
+    let ground = g["ground_rms_mm"].as_f64().unwrap();
+    let oracle_ground = v["oracle"]["ground_rms_mm"].as_f64().unwrap();
+    assert!(objects >= MIN_OBJECTS, "{objects} objects (bound {MIN_OBJECTS}): {g}");
+    assert!(
+        shape["median_solidity"].as_f64().unwrap() >= MIN_MEDIAN_SOLIDITY,
+        "median solidity below {MIN_MEDIAN_SOLIDITY}: {g}"
+    );
+    assert!(ground <= MAX_GROUND_RATIO * oracle_ground, "ground {ground} mm against the oracle's {oracle_ground}: {g}");
+    let p90 = g["p90_object_area_m2"].as_f64().unwrap();
+    assert!(p90 <= MAX_P90_AREA_M2, "p90 footprint {p90} m2 (bound {MAX_P90_AREA_M2}): {g}");
+}
+
+#[test]
+fn two_sampling_seeds_grow_different_worlds_and_one_seed_the_same() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |name: &str, seed: &str| {
+        let dir = tmp.path().join(name);
+        ok(&["generate", "--out", dir.to_str().unwrap(), "--res", "64", "--steps", "6", "--seed", seed, "--no-video"]);
+        std::fs::read(dir.join("mesh.ply")).unwrap()
+    };
+    let (a, b, c) = (run("a", "1"), run("b", "1"), run("c", "2"));
+    assert!(a == b, "one seed must grow the same world");
+    assert!(a != c, "two seeds must grow different worlds");
+}
