@@ -625,10 +625,13 @@ fn crop_frame(frame: &RgbdFrame, w: usize, h: usize) -> RgbdFrame {
 impl Refiner for VqRefiner {
     type Error = ModelError;
 
-    /// Sampling draws are seeded per frame from `options.seed ^ guidance.seed`, so a frame's
+    /// Sampling draws are seeded per frame from `options.seed` (multiplied by an odd constant) and
+    /// `guidance.seed`, so a frame's
     /// result does not depend on what was refined before it (resumed runs equal uninterrupted ones).
     fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, ModelError> {
-        self.rng = ChaCha8Rng::seed_from_u64(self.options.seed ^ guidance.seed);
+        // the generator's per-step seed already mixes in the run seed, which is usually this
+        // options' seed too: a plain XOR cancelled them (every --seed grew the same world)
+        self.rng = ChaCha8Rng::seed_from_u64(self.options.seed.wrapping_mul(0xD1B5_4A32_D192_ED03) ^ guidance.seed);
         self.complete_at(&guidance.frame, &guidance.missing, Some(&guidance.camera.intrinsics))
     }
 }
