@@ -6,8 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
+use rand::Rng;
 use sgam_model::context::ContextConfig;
 use sgam_model::context_train::{context_pairs, ContextPair, ContextTrainConfig, ContextTrainer};
 use sgam_model::params::from_safetensors_bytes;
@@ -189,43 +188,16 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             model_config.downsample_factor()
         );
     }
+    let spec = crate::train_sampler::PairSpec {
+        run: &a.run,
+        steps_per_run: a.steps_per_run,
+        crop: a.crop,
+        scenes: a.scenes,
+        seed: a.seed,
+    };
     let record = |n: usize, stream: u64, what: &str| -> Result<Vec<ContextPair>> {
-        let key = sgam_pipeline::codepairs::CacheKey {
-            version: 1,
-            pairs: n,
-            steps_per_run: a.steps_per_run,
-            crop: a.crop,
-            scenes: a.scenes,
-            seed: a.seed,
-            stream,
-        };
-        let path = a.run.join(format!("pairs-{stream}.bin"));
-        let cached = if path.exists() { sgam_pipeline::codepairs::read_cache(&path, &key)? } else { None };
-        let pairs = match cached {
-            Some(p) => p,
-            None if resuming && path.exists() => bail!(
-                "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
-                 --steps-per-run / --seed; resume with the options it started with",
-                path.display()
-            ),
-            None => {
-                let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
-                rng.set_stream(stream);
-                let pb = progress::bar(n as u64, what);
-                let pairs = sgam_pipeline::codepairs::collect(
-                    n,
-                    a.steps_per_run,
-                    a.crop,
-                    a.scenes,
-                    (&target_model, &target_config),
-                    &mut rng,
-                    &mut |k| pb.set_position(k as u64),
-                )?;
-                pb.finish_and_clear();
-                sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
-                pairs
-            }
-        };
+        let pairs =
+            crate::train_sampler::recorded_pairs(&spec, n, stream, what, (&target_model, &target_config), resuming)?;
         let pb = progress::bar(pairs.len() as u64, "encoder features");
         let out = context_pairs(&model, &model_config, &pairs, 0.5, 32, &mut |k| pb.set_position(k as u64))?;
         pb.finish_and_clear();

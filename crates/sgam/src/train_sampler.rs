@@ -52,6 +52,61 @@ fn validate(a: &SamplerArgs) -> Result<()> {
     Ok(())
 }
 
+/// What a run's recorded pairs are drawn with (its options; the cache key of `RUN/pairs-*.bin`).
+pub(crate) struct PairSpec<'a> {
+    pub run: &'a std::path::Path,
+    pub steps_per_run: usize,
+    pub crop: u32,
+    pub scenes: u64,
+    pub seed: u64,
+}
+
+/// `n` training pairs of stream `stream`, recorded from the generator with the oracle on
+/// training scenes (targets from `target`), deterministic from the spec's seed; cached in
+/// `RUN/pairs-{stream}.bin` so a restart or a resume trains at once. A resumed run refuses a
+/// cache recorded with other options (that would silently change its data); a new run records
+/// again.
+pub(crate) fn recorded_pairs(
+    spec: &PairSpec,
+    n: usize,
+    stream: u64,
+    what: &str,
+    target: (&sgam_model::VqModel, &sgam_model::ModelConfig),
+    resuming: bool,
+) -> Result<Vec<sgam_model::generative::CodePair>> {
+    let key = sgam_pipeline::codepairs::CacheKey {
+        version: 1,
+        pairs: n,
+        steps_per_run: spec.steps_per_run,
+        crop: spec.crop,
+        scenes: spec.scenes,
+        seed: spec.seed,
+        stream,
+    };
+    let path = spec.run.join(format!("pairs-{stream}.bin"));
+    if path.exists() {
+        match sgam_pipeline::codepairs::read_cache(&path, &key)? {
+            Some(p) => return Ok(p),
+            None if resuming => bail!(
+                "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
+                 --steps-per-run / --seed; resume with the options it started with",
+                path.display()
+            ),
+            None => eprintln!("{}: recorded with other options; recording again", path.display()),
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
+    rng.set_stream(stream);
+    let pb = progress::bar(n as u64, what);
+    let pairs =
+        sgam_pipeline::codepairs::collect(n, spec.steps_per_run, spec.crop, spec.scenes, target, &mut rng, &mut |k| {
+            pb.set_position(k as u64)
+        })?;
+    pb.finish_and_clear();
+    sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
+    Ok(pairs)
+}
+
 /// Runs `sgam train sampler`.
 pub fn run(a: &SamplerArgs) -> Result<()> {
     validate(a)?;
@@ -145,44 +200,9 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     // pairs: recorded from the generator with the oracle, deterministic from --seed
     // recorded once per run folder and cached there (RUN/pairs-*.bin), so a restart or a resume
     // trains at once
-    let record = |n: usize, stream: u64, what: &str| -> Result<Vec<_>> {
-        let key = sgam_pipeline::codepairs::CacheKey {
-            version: 1,
-            pairs: n,
-            steps_per_run: a.steps_per_run,
-            crop: a.crop,
-            scenes: a.scenes,
-            seed: a.seed,
-            stream,
-        };
-        let path = a.run.join(format!("pairs-{stream}.bin"));
-        if path.exists() {
-            match sgam_pipeline::codepairs::read_cache(&path, &key)? {
-                Some(p) => return Ok(p),
-                // a run keeps its pairs: resuming on others would silently change the data
-                None if resuming => bail!(
-                    "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
-                     --steps-per-run / --seed; resume with the options it started with",
-                    path.display()
-                ),
-                None => eprintln!("{}: recorded with other options; recording again", path.display()),
-            }
-        }
-        let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
-        rng.set_stream(stream);
-        let pb = progress::bar(n as u64, what);
-        let pairs = sgam_pipeline::codepairs::collect(
-            n,
-            a.steps_per_run,
-            a.crop,
-            a.scenes,
-            (&target_model, &target_config),
-            &mut rng,
-            &mut |k| pb.set_position(k as u64),
-        )?;
-        pb.finish_and_clear();
-        sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
-        Ok(pairs)
+    let spec = PairSpec { run: &a.run, steps_per_run: a.steps_per_run, crop: a.crop, scenes: a.scenes, seed: a.seed };
+    let record = |n: usize, stream: u64, what: &str| {
+        recorded_pairs(&spec, n, stream, what, (&target_model, &target_config), resuming)
     };
     let started = std::time::Instant::now();
     let train_pairs = record(a.pairs, 1, "recording training pairs")?;
