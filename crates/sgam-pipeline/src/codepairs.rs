@@ -54,15 +54,22 @@ impl Refiner for RecordingOracle {
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Shape {
     Zigzag(f32),
+    Boustrophedon(f32),
     Line(f32),
+    /// Radius; poses about 0.4 m apart along the circle.
+    Circle(f32),
     Spiral(f32),
 }
 
 fn draw_shape(rng: &mut ChaCha8Rng) -> Shape {
-    match rng.random_range(0..10) {
+    // every trajectory `eval world` knows, so no path's holes are new to the model (greedy walks
+    // the zig-zag's grid; boustrophedon rows are zig-zags without the diagonal)
+    match rng.random_range(0..20) {
         0..=4 => Shape::Zigzag(0.408),
         5..=6 => Shape::Zigzag(0.816),
-        7..=8 => Shape::Line(rng.random_range(0.4..1.2)),
+        7..=8 => Shape::Boustrophedon(0.408),
+        9..=11 => Shape::Line(rng.random_range(0.4..1.2)),
+        12..=14 => Shape::Circle(rng.random_range(2.0..8.0)),
         _ => Shape::Spiral(rng.random_range(0.4..0.8)),
     }
 }
@@ -80,7 +87,16 @@ fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> 
             let cells: Vec<_> = trajectory::zigzag_cells(side, side).into_iter().take(steps + 1).collect();
             trajectory::grid_poses(s, &cells, step)
         }
+        Shape::Boustrophedon(step) => {
+            let side = ((steps + 1) as f64).sqrt().ceil() as usize + 1;
+            let cells: Vec<_> = trajectory::boustrophedon_cells(side, side).into_iter().take(steps + 1).collect();
+            trajectory::grid_poses(s, &cells, step)
+        }
         Shape::Line(step) => trajectory::line_poses(s, steps + 1, step),
+        Shape::Circle(radius) => {
+            let around = ((std::f32::consts::TAU * radius / 0.4).ceil() as usize).max(steps + 1);
+            trajectory::circle_poses(s, around, radius).into_iter().take(steps + 1).collect()
+        }
         Shape::Spiral(step) => trajectory::spiral_poses(s, steps + 1, step, 4.0),
     };
     let dir = tempfile::tempdir().map_err(|e| sgam_io::IoError::Io { path: std::env::temp_dir(), source: e })?;
@@ -347,6 +363,31 @@ mod tests {
         assert_eq!(g.missing, target.missing);
         assert_eq!(g.frame, target.frame);
         assert!(target.missing.iter().any(|m| !m), "the guidance shows the map");
+    }
+
+    #[test]
+    fn pairs_come_from_every_trajectory_shape_in_the_stated_shares() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut counts = [0usize; 5];
+        let n = 20_000;
+        for _ in 0..n {
+            let k = match draw_shape(&mut rng) {
+                Shape::Zigzag(_) => 0,
+                Shape::Boustrophedon(_) => 1,
+                Shape::Line(_) => 2,
+                Shape::Circle(r) => {
+                    assert!((2.0..8.0).contains(&r), "circle radius {r}");
+                    3
+                }
+                Shape::Spiral(_) => 4,
+            };
+            counts[k] += 1;
+        }
+        // zig-zag 7/20, boustrophedon 2/20, line 3/20, circle 3/20, spiral 5/20
+        for (c, want) in counts.iter().zip([0.35, 0.10, 0.15, 0.15, 0.25]) {
+            let share = *c as f64 / n as f64;
+            assert!((share - want).abs() < 0.015, "share {share} against {want} ({counts:?})");
+        }
     }
 
     #[test]

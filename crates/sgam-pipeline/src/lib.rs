@@ -35,6 +35,7 @@ mod poses;
 mod refiners;
 pub mod run;
 mod seeds;
+pub mod settings;
 pub mod snapshot;
 
 pub use config::{OutputSettings, RunConfig, MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION};
@@ -52,4 +53,5 @@ pub use run::{Generated, Quiet, Resume, RunObserver};
 pub use seeds::{
     check_intrinsics, synthetic_seed_camera, Preset, Seed, SeedSpec, CLEVR, GOOGLE_EARTH, HELD_OUT_SEED_BASE,
 };
+pub use settings::RunSettings;
 pub use snapshot::save_map;

@@ -75,12 +75,16 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                     bail!("the oracle is exact by construction; evaluate null or a model")
                 }
                 kind => {
-                    let g = crate::generate::GenerateArgs::for_refiner(
-                        kind,
-                        a.model.clone(),
-                        a.regenerate_observed || a.autoencode,
-                    );
-                    match crate::generate::model_refiner(kind, &g)? {
+                    let mut run = sgam_pipeline::RunSettings {
+                        refiner: sgam_pipeline::settings::RefinerSettings {
+                            refiner: kind,
+                            model: a.model.clone(),
+                            no_refine: false,
+                        },
+                        ..Default::default()
+                    };
+                    run.sampling.regenerate_observed = a.regenerate_observed || a.autoencode;
+                    match crate::generate::model_refiner(&run)? {
                         Some(mut m) => one_step(&a, &mut m)?,
                         None => one_step(&a, &mut sgam_pipeline::NullRefiner { fill: true })?,
                     }

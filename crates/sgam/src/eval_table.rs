@@ -9,7 +9,8 @@ use clap::Args;
 
 use crate::eval::OneStepArgs;
 use crate::eval_world::WorldArgs;
-use crate::generate::{GenerateArgs, RefinerKind, TrajectoryKind};
+use sgam_pipeline::settings::{PathSettings, RefinerKind, RefinerSettings, TrajectoryKind};
+use sgam_pipeline::RunSettings;
 
 /// Arguments of `sgam eval table`.
 #[derive(Debug, Args)]
@@ -55,7 +56,7 @@ const ROWS: [Row; 6] = [
     Row {
         name: "model, sampled (default T)",
         refiner: RefinerKind::Auto,
-        temperature: crate::generate::DEFAULT_TEMPERATURE,
+        temperature: sgam_pipeline::settings::DEFAULT_TEMPERATURE,
         no_map: false,
         no_refine: false,
     },
@@ -76,7 +77,7 @@ const ROWS: [Row; 6] = [
     Row {
         name: "--no-map (model, default T)",
         refiner: RefinerKind::Auto,
-        temperature: crate::generate::DEFAULT_TEMPERATURE,
+        temperature: sgam_pipeline::settings::DEFAULT_TEMPERATURE,
         no_map: true,
         no_refine: false,
     },
@@ -121,14 +122,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
                 autoencode: false,
                 json: true,
             };
-            let mut g = GenerateArgs::for_refiner(
-                if row.no_refine { RefinerKind::Null } else { row.refiner },
-                a.model.clone(),
-                false,
-            );
-            g.temperature = row.temperature;
-            g.no_refine = row.no_refine;
-            match crate::generate::model_refiner(g.refiner, &g)? {
+            match crate::generate::model_refiner(&row_settings(a, row))? {
                 Some(mut m) if !row.no_refine => crate::eval::one_step(&os, &mut m)?,
                 _ => crate::eval::one_step(&os, &mut sgam_pipeline::NullRefiner { fill: !row.no_refine })?,
             }
@@ -158,7 +152,7 @@ pub fn run(a: &TableArgs) -> Result<()> {
             f(&world["step_ms_median"], 0),
         ));
         let label_dir = a.out.join(format!("seed-{}", sgam_pipeline::HELD_OUT_SEED_BASE));
-        let label = if row.refiner == RefinerKind::Oracle { "oracle".to_string() } else { wa_label(&wa) };
+        let label = wa.label();
         overviews.push((label_dir.join(label).join("overview.png"), row.name));
         json_rows.push(serde_json::json!({ "row": row.name, "world": world, "one_step": one }));
     }
@@ -197,26 +191,35 @@ pub fn run(a: &TableArgs) -> Result<()> {
     Ok(())
 }
 
+/// The run settings of `row`: the generation defaults but for the row's refiner, temperature
+/// and ablations, and the table's model (for the model's rows).
+fn row_settings(a: &TableArgs, row: &Row) -> RunSettings {
+    let mut run = RunSettings {
+        refiner: RefinerSettings {
+            refiner: row.refiner,
+            model: if row.refiner == RefinerKind::Auto && !row.no_refine { a.model.clone() } else { None },
+            no_refine: row.no_refine,
+        },
+        ..RunSettings::default()
+    };
+    run.sampling.temperature = row.temperature;
+    run.map.no_map = row.no_map;
+    run
+}
+
 /// `eval world`'s arguments for `row`: the table's seeds, steps and model along the zig-zag, the
 /// generation defaults otherwise.
 fn world_args(a: &TableArgs, row: &Row) -> WorldArgs {
+    let run = row_settings(a, row);
     WorldArgs {
         seeds: a.seeds,
         first_seed: sgam_pipeline::HELD_OUT_SEED_BASE,
         steps: a.steps,
-        trajectory: TrajectoryKind::Zigzag,
-        step: None,
-        refiner: row.refiner,
-        model: a.model.clone(),
-        temperature: row.temperature,
-        no_map: row.no_map,
-        no_refine: row.no_refine,
-        ground_snap: crate::generate::DEFAULT_GROUND_SNAP_M,
-        cells_per_pass: crate::generate::DEFAULT_CELLS_PER_PASS,
-        top_k: crate::generate::DEFAULT_TOP_K,
-        within_temperature: crate::generate::DEFAULT_WITHIN_TEMPERATURE,
-        flying_pixels: crate::generate::DEFAULT_FLYING_PIXELS,
-        free_space: crate::generate::DEFAULT_FREE_SPACE,
+        path: PathSettings::default(),
+        refiner: run.refiner,
+        sampling: run.sampling,
+        invented: run.invented,
+        map: run.map,
         paper: false,
         region_size: 5.0,
         out: Some(a.out.clone()),
@@ -224,10 +227,6 @@ fn world_args(a: &TableArgs, row: &Row) -> WorldArgs {
         loop_out: None,
         json: true,
     }
-}
-
-fn wa_label(wa: &WorldArgs) -> String {
-    wa.label()
 }
 
 /// The overview pictures side by side, 3 per line, each scaled to 480 px wide and labelled

@@ -233,13 +233,13 @@ pub fn evaluate(
     check(kinds)?;
     let mut results = Vec::new();
     for &kind in kinds {
-        if kind == base.trajectory {
+        if kind == base.path.trajectory {
             results.push((kind, base_world.clone()));
             continue;
         }
         eprintln!("== model along the {} trajectory", name(kind));
         let wa = WorldArgs {
-            trajectory: kind,
+            path: sgam_pipeline::settings::PathSettings { trajectory: kind, ..base.path.clone() },
             out: Some(out.join(format!("trajectory-{}", name(kind)))),
             loop_out: Some(base.loop_out.clone().unwrap_or_else(|| out.to_path_buf())),
             ..base.clone()

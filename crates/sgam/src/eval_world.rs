@@ -28,7 +28,12 @@ use serde_json::json;
 use sgam_core::{TriMesh, Vec2, Vec3};
 use sgam_metrics::world::{Exclusion, ShapeSummary, WorldStats, WorldStatsConfig};
 
-use crate::generate::{GenerateArgs, RefinerKind, TrajectoryKind};
+use crate::generate::GenerateArgs;
+use sgam_pipeline::settings::{
+    FreeSpace, InventedPixelSettings, MapSettings, OutputArgs, PathSettings, RefinerKind, RefinerSettings,
+    SamplingSettings, TrajectoryKind, DEFAULT_CELLS_PER_PASS, DEFAULT_FLYING_PIXELS, DEFAULT_TOP_K,
+};
+use sgam_pipeline::RunSettings;
 use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 /// The frozen feature extractor of the image distribution metrics (KID): the compact encoder
@@ -52,45 +57,21 @@ pub struct WorldArgs {
     /// Generation steps per world.
     #[arg(long, default_value_t = 400)]
     pub steps: usize,
-    /// Trajectory shape.
-    #[arg(long, value_enum, default_value_t = TrajectoryKind::Zigzag)]
-    pub trajectory: TrajectoryKind,
-    /// Distance between neighbouring poses, metres (default: the authors' 0.408).
-    #[arg(long)]
-    pub step: Option<f32>,
-    /// Refiner to judge.
-    #[arg(long, value_enum, default_value_t = RefinerKind::Auto)]
-    pub refiner: RefinerKind,
-    /// Model weights (default: the bundled model).
-    #[arg(long)]
-    pub model: Option<PathBuf>,
-    /// Sampling temperature of the model (0 = argmin).
-    #[arg(long, default_value_t = crate::generate::DEFAULT_TEMPERATURE)]
-    pub temperature: f32,
-    /// Ground prior of the refiner's worlds, metres (0 = off; see `sgam generate --help`).
-    #[arg(long, default_value_t = crate::generate::DEFAULT_GROUND_SNAP_M)]
-    pub ground_snap: f32,
-    /// Missing latent cells the model draws per pass (see `sgam generate --help`).
-    #[arg(long, default_value_t = crate::generate::DEFAULT_CELLS_PER_PASS)]
-    pub cells_per_pass: usize,
-    /// Sample only among the model's K most likely codes (0 = all; see `sgam generate --help`).
-    #[arg(long, default_value_t = crate::generate::DEFAULT_TOP_K)]
-    pub top_k: usize,
-    /// Two-level sampling's within-class temperature (0 = off; see `sgam generate --help`).
-    #[arg(long, default_value_t = crate::generate::DEFAULT_WITHIN_TEMPERATURE)]
-    pub within_temperature: f32,
-    /// Invented flying pixels: snapped to a surface or kept (see `sgam generate --help`).
-    #[arg(long, value_enum, default_value_t = crate::generate::DEFAULT_FLYING_PIXELS)]
-    pub flying_pixels: crate::generate::FlyingPixels,
-    /// Invented pixels in space earlier views saw empty: carved or kept (see `sgam generate --help`).
-    #[arg(long, value_enum, default_value_t = crate::generate::DEFAULT_FREE_SPACE)]
-    pub free_space: crate::generate::FreeSpace,
-    /// Ablation: no global map (warp from the previous frame only).
-    #[arg(long)]
-    pub no_map: bool,
-    /// Ablation: no refinement (the guidance with its holes is fused).
-    #[arg(long)]
-    pub no_refine: bool,
+    /// The camera path (the same for the refiner and the oracle).
+    #[command(flatten)]
+    pub path: PathSettings,
+    /// The refiner judged.
+    #[command(flatten)]
+    pub refiner: RefinerSettings,
+    /// Its sampling.
+    #[command(flatten)]
+    pub sampling: SamplingSettings,
+    /// Its invented-pixel policy (never applied to the oracle).
+    #[command(flatten)]
+    pub invented: InventedPixelSettings,
+    /// The map and sources (the same for the refiner and the oracle).
+    #[command(flatten)]
+    pub map: MapSettings,
     /// The paper's protocol: 10 seeds x 900 steps (overrides --seeds and --steps).
     #[arg(long)]
     pub paper: bool,
@@ -115,18 +96,22 @@ pub struct WorldArgs {
 }
 
 impl WorldArgs {
+    /// The folder name of this refiner's worlds: its weights (CRC-32) and every option that
+    /// changes them, so worlds grown otherwise are never reused.
     pub fn label(&self) -> String {
-        let base = match self.refiner {
-            RefinerKind::Oracle => "oracle".to_string(),
-            _ if self.no_refine => "no-refine".to_string(),
+        let r = &self.refiner;
+        let kind = r.effective();
+        let mut label = match kind {
+            RefinerKind::Oracle => return self.oracle_label(),
+            _ if r.no_refine => "no-refine".to_string(),
             RefinerKind::Null => "null".to_string(),
             // the model's weights name its runs: another model never reuses them
             _ => {
-                let bytes = match &self.model {
+                let bytes = match &r.model {
                     Some(p) => std::fs::read(p).unwrap_or_default(),
                     None => sgam_pipeline::BUNDLED_MODEL.to_vec(),
                 };
-                let stem = match &self.model {
+                let stem = match &r.model {
                     Some(p) => {
                         p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "model".into())
                     }
@@ -135,38 +120,57 @@ impl WorldArgs {
                 format!("{stem}-{:08x}", crc32fast::hash(&bytes))
             }
         };
-        let mut label = base;
-        if matches!(self.refiner, RefinerKind::Auto | RefinerKind::Model) && !self.no_refine {
-            label.push_str(&format!("-t{}", self.temperature));
-            if self.cells_per_pass != crate::generate::DEFAULT_CELLS_PER_PASS {
-                label.push_str(&format!("-c{}", self.cells_per_pass));
+        let s = &self.sampling;
+        if matches!(kind, RefinerKind::Auto | RefinerKind::Model) {
+            label.push_str(&format!("-t{}", s.temperature));
+            if s.cells_per_pass != DEFAULT_CELLS_PER_PASS {
+                label.push_str(&format!("-c{}", s.cells_per_pass));
             }
-            if self.top_k != crate::generate::DEFAULT_TOP_K {
-                label.push_str(&format!("-k{}", self.top_k));
+            if s.top_k != DEFAULT_TOP_K {
+                label.push_str(&format!("-k{}", s.top_k));
             }
             // always named when on, so worlds grown before it existed keep their folder
-            if self.within_temperature > 0.0 {
-                label.push_str(&format!("-w{}", self.within_temperature));
+            if s.within_temperature > 0.0 {
+                label.push_str(&format!("-w{}", s.within_temperature));
+            }
+            if s.seed != 0 {
+                label.push_str(&format!("-s{}", s.seed));
+            }
+            if s.regenerate_observed {
+                label.push_str("-regen");
             }
         }
-        if self.refiner != RefinerKind::Oracle && self.ground_snap > 0.0 {
-            label.push_str(&format!("-g{}", self.ground_snap));
+        let p = &self.invented;
+        if kind != RefinerKind::Oracle {
+            if p.ground_snap > 0.0 {
+                label.push_str(&format!("-g{}", p.ground_snap));
+            }
+            if p.flying_pixels != DEFAULT_FLYING_PIXELS {
+                label.push_str(&format!("-f{:?}", p.flying_pixels).to_lowercase());
+            }
+            // always named when on, so worlds grown before it existed keep their folder
+            if p.free_space == FreeSpace::Carve {
+                label.push_str("-carve");
+            }
         }
-        if self.refiner != RefinerKind::Oracle && self.flying_pixels != crate::generate::DEFAULT_FLYING_PIXELS {
-            let name = match self.flying_pixels {
-                crate::generate::FlyingPixels::Snap => "snap",
-                crate::generate::FlyingPixels::Keep => "keep",
-            };
-            label.push_str(&format!("-f{name}"));
-        }
-        // always named when on, so worlds grown before it existed keep their folder
-        if self.refiner != RefinerKind::Oracle && self.free_space == crate::generate::FreeSpace::Carve {
-            label.push_str("-carve");
-        }
-        if self.no_map {
+        if self.map.no_map {
             label.push_str("-nomap");
         }
-        label
+        label + &self.map_suffix()
+    }
+
+    /// The oracle's folder name: the map options name it too.
+    pub fn oracle_label(&self) -> String {
+        format!("oracle{}", self.map_suffix())
+    }
+
+    /// Empty for the default map, else a hash of the map options given.
+    fn map_suffix(&self) -> String {
+        let map = MapSettings { no_map: false, ..self.map.clone() };
+        if map == MapSettings::default() {
+            return String::new();
+        }
+        format!("-map{:08x}", crc32fast::hash(format!("{map:?}").as_bytes()))
     }
 
     fn seeds_steps(&self) -> (u64, usize) {
@@ -188,20 +192,16 @@ impl WorldArgs {
         if !(10..=100_000).contains(&steps) {
             bail!("--steps {steps} must be in 10..=100000");
         }
-        if !(self.temperature.is_finite() && self.temperature >= 0.0) {
-            bail!("--temperature {} must be a non-negative number", self.temperature);
-        }
-        if self.cells_per_pass == 0 {
-            bail!("--cells-per-pass must be at least 1");
-        }
-        if !(self.ground_snap.is_finite() && (0.0..=10.0).contains(&self.ground_snap)) {
-            bail!("--ground-snap {} must be between 0 and 10 metres", self.ground_snap);
-        }
+        self.path.validate()?;
+        self.refiner.validate()?;
+        self.sampling.validate()?;
+        self.invented.validate()?;
+        self.map.validate()?;
         if !(self.region_size.is_finite() && self.region_size >= 1.0 && self.region_size <= 100.0) {
             bail!("--region-size {} must be between 1 and 100 metres", self.region_size);
         }
-        if let Some(s) = self.step {
-            if !(s.is_finite() && s > 0.0 && s < 10.0) {
+        if let Some(s) = self.path.step {
+            if s >= 10.0 {
                 bail!("--step {s} must be a positive distance below 10 m");
             }
         }
@@ -209,25 +209,25 @@ impl WorldArgs {
     }
 }
 
-/// `sgam generate`'s arguments for one of this evaluation's runs: the refiner of `kind` with
-/// the evaluated options (the oracle takes none), no fly-through.
-fn generate_args(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: usize) -> GenerateArgs {
-    let mut g = GenerateArgs::for_refiner(kind, args.model.clone(), false);
-    g.seed_scene = seed_scene;
-    g.steps = steps;
-    g.no_video = true;
-    if kind != RefinerKind::Oracle {
-        g.temperature = args.temperature;
-        g.no_map = args.no_map;
-        g.no_refine = args.no_refine;
-        g.ground_snap = args.ground_snap;
-        g.cells_per_pass = args.cells_per_pass;
-        g.top_k = args.top_k;
-        g.within_temperature = args.within_temperature;
-        g.flying_pixels = args.flying_pixels;
-        g.free_space = args.free_space;
+/// The run of one of this evaluation's worlds: the refiner of `kind` with the evaluated options
+/// (the oracle takes none of the refiner's), along the evaluated path, no fly-through.
+fn run_settings(args: &WorldArgs, kind: RefinerKind, seed_scene: u64, steps: usize) -> RunSettings {
+    let mut run = RunSettings {
+        steps,
+        path: args.path.clone(),
+        map: args.map.clone(),
+        outputs: OutputArgs { no_video: true, ..OutputArgs::default() },
+        ..RunSettings::clevr(seed_scene)
+    };
+    if kind == RefinerKind::Oracle {
+        run.refiner = RefinerSettings::kind(RefinerKind::Oracle);
+        run.map.no_map = false; // an ablation of the refiner's world, not the true one
+    } else {
+        run.refiner = args.refiner.clone();
+        run.sampling = args.sampling.clone();
+        run.invented = args.invented.clone();
     }
-    g
+    run
 }
 
 /// Grows (or reuses) one world; returns its folder.
@@ -239,10 +239,7 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
             .with_context(|| format!("{}: corrupt run.json", dir.display()))?;
         // reuse only a world grown the same way: the resolved run (seed, trajectory, steps,
         // ablations, sampling) equal to the one these options give; the model file may differ
-        let mut want = generate_args(args, kind, seed_scene, steps);
-        want.trajectory = args.trajectory;
-        want.step = args.step;
-        let want = crate::generate::resolve(&want)?;
+        let want = run_settings(args, kind, seed_scene, steps).resolve()?;
         let stored: Option<sgam_pipeline::RunConfig> = serde_json::from_value(run["config"].clone()).ok();
         if stored.is_none() {
             bail!(
@@ -277,16 +274,9 @@ fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, root:
         );
     }
     if dir.join("snapshot.bin").exists() {
-        let mut g = GenerateArgs::for_refiner(kind, args.model.clone(), false);
-        g.resume = Some(dir.clone());
-        g.no_video = true;
-        crate::generate::run(g)?;
+        crate::generate::run(GenerateArgs::resume(dir.clone()))?;
     } else {
-        let mut g = generate_args(args, kind, seed_scene, steps);
-        g.out = Some(dir.clone());
-        g.trajectory = args.trajectory;
-        g.step = args.step;
-        crate::generate::run(g)?;
+        crate::generate::run(GenerateArgs::new(run_settings(args, kind, seed_scene, steps), Some(dir.clone())))?;
     }
     if !args.keep_snapshots {
         drop_resume_files(&dir)?;
@@ -337,11 +327,9 @@ fn loop_consistency(
         poses.push(seed.world_from_camera);
         let traj = root.join(format!("seed-{seed_scene}")).join("loop-kitti.txt");
         sgam_io::write_kitti_trajectory(&traj, &poses)?;
-        let mut g = generate_args(args, kind, seed_scene, LOOP_STEPS);
-        g.out = Some(dir.join("run"));
-        g.trajectory = TrajectoryKind::File;
-        g.trajectory_file = Some(traj);
-        crate::generate::run(g)?;
+        let mut run = run_settings(args, kind, seed_scene, LOOP_STEPS);
+        run.path = PathSettings { trajectory_file: Some(traj), ..PathSettings::kind(TrajectoryKind::File) };
+        crate::generate::run(GenerateArgs::new(run, Some(dir.join("run"))))?;
         for name in ["run.json", "rgb"] {
             std::fs::rename(dir.join("run").join(name), dir.join(name))
                 .with_context(|| format!("{}: cannot keep the loop's {name}", dir.display()))?;
@@ -530,11 +518,11 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
     let mut results = Vec::new();
     for s in 0..seeds {
         let scene = args.first_seed + s;
-        let oracle_dir = grow(args, scene, RefinerKind::Oracle, "oracle", &root)?;
-        let gen_dir = if args.refiner == RefinerKind::Oracle {
+        let oracle_dir = grow(args, scene, RefinerKind::Oracle, &args.oracle_label(), &root)?;
+        let gen_dir = if args.refiner.effective() == RefinerKind::Oracle {
             oracle_dir.clone()
         } else {
-            grow(args, scene, args.refiner, &label, &root)?
+            grow(args, scene, args.refiner.effective(), &label, &root)?
         };
         let (gm, om) = (read_mesh(&gen_dir)?, read_mesh(&oracle_dir)?);
         let generated = sgam_metrics::world::world_stats(&gm, &exclusion, &cfg);
@@ -565,7 +553,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
             gen_features,
             ref_features,
             step_ms: median_step_ms(&gen_dir),
-            loop_psnr_ssim: loop_consistency(args, scene, args.refiner, &label, &loop_root)?,
+            loop_psnr_ssim: loop_consistency(args, scene, args.refiner.effective(), &label, &loop_root)?,
         });
     }
     let gen_stats: Vec<WorldStats> = results.iter().map(|r| r.generated.clone()).collect();
@@ -584,13 +572,13 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     Ok(json!({
         "refiner": label, "seeds": seeds, "steps": steps,
-        "trajectory": format!("{:?}", args.trajectory).to_lowercase(),
-        "temperature": args.temperature,
-        "ground_snap_m": args.ground_snap,
-        "flying_pixels": args.flying_pixels,
-        "free_space": args.free_space,
-        "top_k": args.top_k,
-        "within_temperature": args.within_temperature,
+        "trajectory": format!("{:?}", args.path.trajectory).to_lowercase(),
+        "temperature": args.sampling.temperature,
+        "ground_snap_m": args.invented.ground_snap,
+        "flying_pixels": args.invented.flying_pixels,
+        "free_space": args.invented.free_space,
+        "top_k": args.sampling.top_k,
+        "within_temperature": args.sampling.within_temperature,
         "generated": gp, "oracle": op,
         "ratio_to_oracle": {
             "objects_per_100m2": ratio(gp.objects_per_100m2, op.objects_per_100m2),

@@ -3,29 +3,15 @@
 //! folders with earlier outputs never overwritten without `--force`, output paths checked before
 //! hours of work are spent, and temporary files of killed writers removed.
 
-use std::fmt::Display;
 use std::fs::{File, OpenOptions};
 use std::io::Write;
-use std::ops::RangeInclusive;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 
-/// `value` must lie in `range` (NaN never does).
-pub fn in_range<T: PartialOrd + Display>(option: &str, value: T, range: RangeInclusive<T>) -> Result<()> {
-    if !range.contains(&value) {
-        bail!("{option} {value} is out of range: accepted {}..={}", range.start(), range.end());
-    }
-    Ok(())
-}
-
-/// `value` must be a positive number no larger than `max`.
-pub fn positive(option: &str, value: f32, max: f32) -> Result<()> {
-    if !(value > 0.0 && value <= max) {
-        bail!("{option} {value} is out of range: accepted a positive number up to {max}");
-    }
-    Ok(())
-}
+/// Option ranges: the library's checks (NaN is never in range), so a command line and a
+/// program get the same errors.
+pub use sgam_pipeline::settings::{in_range, positive};
 
 /// Name of the lock file inside a run folder.
 pub const LOCK_FILE: &str = ".sgam-lock";

@@ -1,0 +1,830 @@
+//! A run's settings as a user states them, in groups, with their defaults: the one place where a
+//! default is written. Each group is a clap [`Args`] that `sgam generate`, `sgam eval world`,
+//! `sgam eval table` and `sgam bench` flatten into their command lines, and a plain struct whose
+//! [`Default`] equals an empty command line (tested), so a program builds "the default run" with
+//! [`RunSettings::clevr`] and changes what it needs. [`RunSettings::resolve`] applies the seed's
+//! preset ([`crate::Preset`]) to the options left out and gives the versioned [`RunConfig`] a run
+//! stores.
+//!
+//! How the defaults were chosen is in docs/MODEL.md (sampling, the invented-pixel policy) and
+//! `crate::seeds` (map and sources).
+
+use std::fmt::Display;
+use std::ops::RangeInclusive;
+use std::path::PathBuf;
+
+use clap::{Args, ValueEnum};
+use serde::{Deserialize, Serialize};
+
+use crate::error::config_error;
+use crate::{
+    check_intrinsics, OutputSettings, RefinerSpec, Result, RunConfig, SeedSpec, TrajectorySpec, HELD_OUT_SEED_BASE,
+    MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION,
+};
+
+/// Default of `--temperature`: chosen on training seeds 11-14 between 1.0, 1.15, 1.3 and 1.5;
+/// 1.0 under-starts objects, 1.5 washes out their colour.
+pub const DEFAULT_TEMPERATURE: f32 = 1.3;
+/// Default of `--within-temperature`: chosen on training seeds 11-14 between 0 (off), 1.0, 0.6
+/// and 0.4. The class of a missing cell keeps `--temperature`'s odds and its code within the
+/// class is drawn at 0.6: objects' colour saturation went from 0.62x to 0.89x of the true
+/// world's and KID from 0.028 to 0.010.
+pub const DEFAULT_WITHIN_TEMPERATURE: f32 = 0.6;
+/// Default of `--cells-per-pass`: chosen on training seeds 11-14 against 48. A zig-zag step's
+/// 20-60 new cells take 3-4 passes instead of one, so the cells of one new object see each
+/// other's draws.
+pub const DEFAULT_CELLS_PER_PASS: usize = 8;
+/// Default of `--top-k`: 0, all codes (the trained distribution).
+pub const DEFAULT_TOP_K: usize = 0;
+/// Default of `--ground-snap`, metres: below the shortest object of the synthetic world
+/// (1.4 m), above the bundled model's ground error; with two-level sampling and free-space
+/// carving 1.0 m keeps more objects than 1.2 m (0.69x against 0.61x of the true density on
+/// training seeds 11-18).
+pub const DEFAULT_GROUND_SNAP_M: f32 = 1.0;
+/// Default of `--flying-pixels`.
+pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
+/// Default of `--free-space`.
+pub const DEFAULT_FREE_SPACE: FreeSpace = FreeSpace::Carve;
+/// Default of `--steps` for `sgam generate`.
+pub const DEFAULT_STEPS: usize = 100;
+/// Default of `--res` (synthetic seeds).
+pub const DEFAULT_RES: u32 = 256;
+/// Default of `--grid` (the paper's 30x30 zig-zag).
+pub const DEFAULT_GRID: usize = 30;
+/// Default of `--radius`, metres.
+pub const DEFAULT_RADIUS_M: f32 = 4.0;
+/// Default of `--depth-max`, metres.
+pub const DEFAULT_DEPTH_MAX_M: f32 = 20.0;
+/// Default of `--snapshot-every`.
+pub const DEFAULT_SNAPSHOT_EVERY: usize = 25;
+
+/// `option` must lie in `range`; the error names the option and the range.
+pub fn in_range<T: PartialOrd + Display>(option: &str, value: T, range: RangeInclusive<T>) -> Result<()> {
+    if !range.contains(&value) {
+        config_error!("{option} {value} is out of range: accepted {}..={}", range.start(), range.end());
+    }
+    Ok(())
+}
+
+/// `value` must be a positive number no larger than `max`.
+pub fn positive(option: &str, value: f32, max: f32) -> Result<()> {
+    if !(value > 0.0 && value <= max) {
+        config_error!("{option} {value} is out of range: accepted a positive number up to {max}");
+    }
+    Ok(())
+}
+
+/// Camera path shapes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+pub enum TrajectoryKind {
+    /// The SGAM authors' anti-diagonal zig-zag over a grid (--grid x --grid, --step apart).
+    Zigzag,
+    /// Lawn-mower rows over a grid.
+    Boustrophedon,
+    /// Straight line along the seed camera's heading.
+    Line,
+    /// One full circle (radius --radius), turning the view with the path.
+    Circle,
+    /// Outward Archimedean spiral (--step apart, --radius growth per turn).
+    Spiral,
+    /// Poses from --trajectory-file (our transforms.json, TUM or KITTI).
+    File,
+    /// Greedy next-pose choice on the zig-zag's grid: of the unvisited neighbouring cells, the
+    /// one whose view of the current map is most complete (see docs/STATUS.md).
+    Greedy,
+}
+
+/// Which refiner completes the guidance.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+pub enum RefinerKind {
+    /// The VQ model: --model when given, else the bundled compact model (trained on the
+    /// synthetic CLEVR-Infinite world).
+    Auto,
+    /// Same as auto (kept for scripts that name it).
+    Model,
+    /// Stand-in: holes filled by push-pull interpolation.
+    Null,
+    /// Stand-in: ground truth of the synthetic world (synthetic seeds only).
+    Oracle,
+}
+
+/// `--flying-pixels`: invented pixels that hang between two surfaces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FlyingPixels {
+    /// Give each to the nearer surface or to the ground behind it.
+    Snap,
+    /// Fuse them as the refiner drew them.
+    Keep,
+}
+
+/// `--free-space`: invented pixels in space the seed frame or a source saw as empty.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FreeSpace {
+    /// Put each on the ground plane behind it, or drop it (not fused).
+    Carve,
+    /// Fuse them as the refiner drew them.
+    Keep,
+}
+
+/// Where the seed frame comes from.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct SeedSettings {
+    /// Synthetic seed: CLEVR-Infinite scene seed (held-out seeds start at 1000000).
+    #[arg(long, default_value_t = HELD_OUT_SEED_BASE)]
+    pub seed_scene: u64,
+    /// Seed from an RGB image (needs --seed-depth and --intrinsics).
+    #[arg(long, requires_all = ["seed_depth", "intrinsics"])]
+    pub seed_rgb: Option<PathBuf>,
+    /// Depth of the seed image: 16-bit PNG in millimetres or NPY in metres (planar).
+    #[arg(long)]
+    pub seed_depth: Option<PathBuf>,
+    /// Intrinsics of the seed image: fx,fy,cx,cy in pixels.
+    #[arg(long, value_parser = parse_intrinsics)]
+    pub intrinsics: Option<[f32; 4]>,
+    /// Seed from the SGAM authors' CLEVR-Infinite template folder (ray-length depth).
+    #[arg(long)]
+    pub seed_template: Option<PathBuf>,
+    /// Seed from an SGAM Google Earth seed folder (planar depth; uses the Google Earth preset:
+    /// 1 cm voxels, 3 cm truncation, sources within 0.3, nearest 3, 0.02-unit steps).
+    #[arg(long)]
+    pub seed_google_earth: Option<PathBuf>,
+    /// Image resolution of synthetic seeds (square).
+    #[arg(long, default_value_t = DEFAULT_RES)]
+    pub res: u32,
+}
+
+impl Default for SeedSettings {
+    fn default() -> Self {
+        Self::synthetic(HELD_OUT_SEED_BASE)
+    }
+}
+
+impl SeedSettings {
+    /// The synthetic CLEVR-Infinite scene `scene` at the default resolution.
+    pub fn synthetic(scene: u64) -> Self {
+        Self {
+            seed_scene: scene,
+            seed_rgb: None,
+            seed_depth: None,
+            intrinsics: None,
+            seed_template: None,
+            seed_google_earth: None,
+            res: DEFAULT_RES,
+        }
+    }
+
+    /// Checks the resolution, that one seed is named, and an RGB seed's intrinsics against its
+    /// image.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--res", self.res, 16..=MAX_RES)?;
+        if let (Some(rgb), Some(k)) = (&self.seed_rgb, self.intrinsics) {
+            let (w, h) = sgam_io::image_size(rgb)?;
+            check_intrinsics(k, w, h)?;
+        }
+        if self.seed_rgb.is_none() {
+            for (given, name) in
+                [(self.seed_depth.is_some(), "--seed-depth"), (self.intrinsics.is_some(), "--intrinsics")]
+            {
+                if given {
+                    config_error!("{name} describes an RGB seed: it needs --seed-rgb");
+                }
+            }
+        }
+        let seeds: Vec<&str> = [
+            (self.seed_rgb.is_some(), "--seed-rgb"),
+            (self.seed_template.is_some(), "--seed-template"),
+            (self.seed_google_earth.is_some(), "--seed-google-earth"),
+        ]
+        .into_iter()
+        .filter_map(|(given, name)| given.then_some(name))
+        .collect();
+        if seeds.len() > 1 {
+            config_error!("{} are different seeds: give one", seeds.join(" and "));
+        }
+        Ok(())
+    }
+
+    /// The seed these settings name.
+    pub fn spec(&self) -> Result<SeedSpec> {
+        Ok(if let Some(rgb) = &self.seed_rgb {
+            let (Some(depth), Some(intrinsics)) = (&self.seed_depth, self.intrinsics) else {
+                config_error!("--seed-rgb needs --seed-depth and --intrinsics");
+            };
+            SeedSpec::Rgbd { rgb: rgb.clone(), depth: depth.clone(), intrinsics }
+        } else if let Some(dir) = &self.seed_template {
+            SeedSpec::ClevrTemplate { dir: dir.clone() }
+        } else if let Some(dir) = &self.seed_google_earth {
+            SeedSpec::GoogleEarth { dir: dir.clone() }
+        } else {
+            SeedSpec::Synthetic { scene: self.seed_scene, res: self.res }
+        })
+    }
+}
+
+fn parse_intrinsics(s: &str) -> std::result::Result<[f32; 4], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f32>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| format!("'{s}': {e}"))?;
+    match v.as_slice() {
+        [fx, fy, cx, cy] => Ok([*fx, *fy, *cx, *cy]),
+        _ => Err(format!("'{s}': expected fx,fy,cx,cy")),
+    }
+}
+
+/// The camera path.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct PathSettings {
+    /// Trajectory shape.
+    #[arg(long, value_enum, default_value_t = TrajectoryKind::Zigzag)]
+    pub trajectory: TrajectoryKind,
+    /// Pose file for --trajectory file: transforms.json (ours / NeRF), TUM (.txt with 8 columns)
+    /// or KITTI (12 columns). Poses are used as given (world_from_camera).
+    #[arg(long)]
+    pub trajectory_file: Option<PathBuf>,
+    /// Grid side of zig-zag / boustrophedon / greedy trajectories (the paper: 30); enlarged
+    /// when it has fewer cells than poses.
+    #[arg(long, default_value_t = DEFAULT_GRID)]
+    pub grid: usize,
+    /// Distance between neighbouring poses, metres (default: the seed's preset; CLEVR 0.408,
+    /// half the dataset spacing, as the authors).
+    #[arg(long)]
+    pub step: Option<f32>,
+    /// Circle radius / spiral growth per turn, metres.
+    #[arg(long, default_value_t = DEFAULT_RADIUS_M)]
+    pub radius: f32,
+}
+
+impl Default for PathSettings {
+    fn default() -> Self {
+        Self::kind(TrajectoryKind::Zigzag)
+    }
+}
+
+impl PathSettings {
+    /// The path `kind` with the default grid, step and radius.
+    pub fn kind(kind: TrajectoryKind) -> Self {
+        Self { trajectory: kind, trajectory_file: None, grid: DEFAULT_GRID, step: None, radius: DEFAULT_RADIUS_M }
+    }
+
+    /// Checks the numbers and that a pose file goes with `--trajectory file` only.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--grid", self.grid, 1..=MAX_GRID)?;
+        if let Some(step) = self.step {
+            positive("--step", step, 1000.0)?;
+        }
+        positive("--radius", self.radius, 10_000.0)?;
+        match (self.trajectory, &self.trajectory_file) {
+            (TrajectoryKind::File, None) => config_error!("--trajectory file needs --trajectory-file PATH"),
+            (kind, Some(_)) if kind != TrajectoryKind::File => {
+                config_error!("--trajectory-file is read only with --trajectory file")
+            }
+            _ => Ok(()),
+        }
+    }
+
+    /// The path of `steps` steps, with `preset_step_m` where `--step` is left out.
+    pub fn spec(&self, steps: usize, preset_step_m: f32) -> Result<TrajectorySpec> {
+        // the grid trajectories need a cell per pose
+        let side = self.grid.max(((steps + 1) as f64).sqrt().ceil() as usize);
+        let step_m = self.step.unwrap_or(preset_step_m);
+        if !(step_m.is_finite() && step_m > 0.0) {
+            config_error!("--step {step_m} must be a positive distance in metres");
+        }
+        Ok(match self.trajectory {
+            TrajectoryKind::Zigzag => TrajectorySpec::Zigzag { side, step_m },
+            TrajectoryKind::Boustrophedon => TrajectorySpec::Boustrophedon { side, step_m },
+            TrajectoryKind::Line => TrajectorySpec::Line { step_m },
+            TrajectoryKind::Circle => TrajectorySpec::Circle { radius_m: self.radius },
+            TrajectoryKind::Spiral => TrajectorySpec::Spiral { step_m, radius_m: self.radius },
+            TrajectoryKind::Greedy => TrajectorySpec::Greedy { side, step_m },
+            TrajectoryKind::File => {
+                let Some(path) = &self.trajectory_file else {
+                    config_error!("--trajectory file needs --trajectory-file PATH")
+                };
+                TrajectorySpec::File { path: path.clone() }
+            }
+        })
+    }
+}
+
+/// Which refiner completes each step's guidance.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct RefinerSettings {
+    /// Refiner: the learned model (auto, model) or a stand-in (null, oracle).
+    #[arg(long, value_enum, default_value_t = RefinerKind::Auto)]
+    pub refiner: RefinerKind,
+    /// Model weights for the learned refiner (default: the bundled compact model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Ablation: no refinement; the guidance (with holes) is fused as it is.
+    #[arg(long)]
+    pub no_refine: bool,
+}
+
+impl Default for RefinerSettings {
+    fn default() -> Self {
+        Self::kind(RefinerKind::Auto)
+    }
+}
+
+impl RefinerSettings {
+    /// The refiner `kind` (the bundled model for the learned one).
+    pub fn kind(kind: RefinerKind) -> Self {
+        Self { refiner: kind, model: None, no_refine: false }
+    }
+
+    /// The refiner that runs: `--no-refine` makes it the stand-in that fills nothing.
+    pub fn effective(&self) -> RefinerKind {
+        if self.no_refine {
+            RefinerKind::Null
+        } else {
+            self.refiner
+        }
+    }
+
+    /// Whether a stand-in (null or oracle) runs instead of the model.
+    pub fn is_stand_in(&self) -> bool {
+        matches!(self.effective(), RefinerKind::Null | RefinerKind::Oracle)
+    }
+
+    /// Refuses `--model` with a stand-in refiner, which would ignore it.
+    pub fn validate(&self) -> Result<()> {
+        if self.is_stand_in() && self.model.is_some() {
+            let stand_in = if self.no_refine {
+                "--no-refine".to_string()
+            } else {
+                format!("--refiner {:?}", self.refiner).to_lowercase()
+            };
+            config_error!("--model is used only by the learned refiner; this run uses a stand-in ({stand_in}) and would ignore it");
+        }
+        Ok(())
+    }
+}
+
+/// How the learned refiner draws the missing latent cells.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct SamplingSettings {
+    /// Sampling temperature in missing latent cells: 1 draws from the generative model's trained
+    /// distribution over codes, higher starts more objects, lower is more conservative, 0 =
+    /// argmin everywhere (the deterministic completion).
+    #[arg(long, default_value_t = DEFAULT_TEMPERATURE)]
+    pub temperature: f32,
+    /// Codes considered when sampling: the k nearest (0 = all, the calibrated distribution).
+    #[arg(long, default_value_t = DEFAULT_TOP_K)]
+    pub top_k: usize,
+    /// Two-level sampling (0 = off): a missing cell first draws its class — plain (the grey
+    /// ground's codes) or coloured (objects) — at --temperature, so objects start as often as
+    /// before, then its code within that class at this lower temperature: the likeliest
+    /// colours and shapes, the likeliest ground. Overrides --top-k.
+    #[arg(long, default_value_t = DEFAULT_WITHIN_TEMPERATURE)]
+    pub within_temperature: f32,
+    /// Iterative (MaskGIT-style) sampling: missing latent cells drawn per pass. A hole of more
+    /// cells takes several passes (at most 4); each commits the most confident draws, so later
+    /// cells see earlier ones. Larger = faster, less coherent.
+    #[arg(long, default_value_t = DEFAULT_CELLS_PER_PASS)]
+    pub cells_per_pass: usize,
+    /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
+    /// guidance is kept where it was observed and the model fills only the missing pixels.
+    #[arg(long)]
+    pub regenerate_observed: bool,
+    /// Run seed (sampling in the refiner): another seed grows another world.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl Default for SamplingSettings {
+    fn default() -> Self {
+        Self {
+            temperature: DEFAULT_TEMPERATURE,
+            top_k: DEFAULT_TOP_K,
+            within_temperature: DEFAULT_WITHIN_TEMPERATURE,
+            cells_per_pass: DEFAULT_CELLS_PER_PASS,
+            regenerate_observed: false,
+            seed: 0,
+        }
+    }
+}
+
+impl SamplingSettings {
+    /// Checks every number.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--temperature", self.temperature, 0.0..=100.0)?;
+        in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
+        in_range("--within-temperature", self.within_temperature, 0.0..=100.0)?;
+        in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
+        Ok(())
+    }
+
+    /// The learned refiner's options.
+    pub fn refiner_options(&self) -> sgam_model::RefinerOptions {
+        sgam_model::RefinerOptions {
+            sampling: crate::sampling(self.temperature, self.top_k),
+            seed: self.seed,
+            keep_observed: !self.regenerate_observed,
+            cells_per_pass: self.cells_per_pass,
+            within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
+            ..Default::default()
+        }
+    }
+}
+
+/// What happens to pixels the refiner invented before they are fused. None applies to the
+/// oracle, whose pixels are the true world's.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct InventedPixelSettings {
+    /// Ground prior, metres (0 = off): invented pixels the refiner puts less than this above
+    /// the seed frame's ground plane, or anywhere below it, are put back on the plane. The
+    /// plane is fitted once in the seed frame (RANSAC); a seed without a dominant plane gets no
+    /// prior. Objects (higher than this) keep the refiner's depth.
+    #[arg(long, default_value_t = DEFAULT_GROUND_SNAP_M)]
+    pub ground_snap: f32,
+    /// Invented pixels that hang between two surfaces: where the refiner draws an object's
+    /// silhouette against the ground behind as a depth ramp, the ramp's pixels float in the air
+    /// and fuse into a sloped skirt around the object. `snap` gives each to the nearer surface
+    /// or to the ground plane behind (a 9x9 neighbourhood spanning over 5 % of the depth);
+    /// `keep` fuses them as drawn.
+    #[arg(long, value_enum, default_value_t = DEFAULT_FLYING_PIXELS)]
+    pub flying_pixels: FlyingPixels,
+    /// Invented pixels in space that an earlier view saw as empty: the map keeps only a band
+    /// around surfaces, so a ray through space the seed frame saw empty can come back missing,
+    /// and the refiner may put an object there, in front of what the seed saw. `carve` checks
+    /// every invented pixel against the seed frame and the step's sources and puts one they
+    /// saw through on the ground plane behind it (or drops it); `keep` fuses them as drawn.
+    #[arg(long, value_enum, default_value_t = DEFAULT_FREE_SPACE)]
+    pub free_space: FreeSpace,
+}
+
+impl Default for InventedPixelSettings {
+    fn default() -> Self {
+        Self {
+            ground_snap: DEFAULT_GROUND_SNAP_M,
+            flying_pixels: DEFAULT_FLYING_PIXELS,
+            free_space: DEFAULT_FREE_SPACE,
+        }
+    }
+}
+
+impl InventedPixelSettings {
+    /// Checks the ground prior's tolerance.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--ground-snap", self.ground_snap, 0.0..=10.0)
+    }
+}
+
+/// The map and the source keyframes of each step's guidance. Options left out take the seed's
+/// preset ([`crate::CLEVR`], [`crate::GOOGLE_EARTH`]).
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct MapSettings {
+    /// Voxel size, metres (default: the seed's preset; CLEVR 0.05).
+    #[arg(long)]
+    pub voxel_size: Option<f32>,
+    /// Truncation in voxels (default: the seed's preset; CLEVR 5, i.e. 0.25 m).
+    #[arg(long)]
+    pub trunc_voxels: Option<f32>,
+    /// Depth cut for integration and rendering, metres.
+    #[arg(long, default_value_t = DEFAULT_DEPTH_MAX_M)]
+    pub depth_max: f32,
+    /// Cap on the per-voxel weight (keeps long runs adaptable; default: none).
+    #[arg(long)]
+    pub weight_cap: Option<f32>,
+    /// Source keyframes per step (default: the seed's preset; CLEVR 5).
+    #[arg(long)]
+    pub k_sources: Option<usize>,
+    /// Sources must lie within this distance, metres (default: the seed's preset; CLEVR 1.0).
+    #[arg(long)]
+    pub source_radius: Option<f32>,
+    /// Ablation: no global map; the guidance is warped from the previous frame only.
+    #[arg(long)]
+    pub no_map: bool,
+}
+
+impl Default for MapSettings {
+    fn default() -> Self {
+        Self {
+            voxel_size: None,
+            trunc_voxels: None,
+            depth_max: DEFAULT_DEPTH_MAX_M,
+            weight_cap: None,
+            k_sources: None,
+            source_radius: None,
+            no_map: false,
+        }
+    }
+}
+
+impl MapSettings {
+    /// Checks every number against the map's limits.
+    pub fn validate(&self) -> Result<()> {
+        if let Some(k) = self.k_sources {
+            in_range("--k-sources", k, 1..=64)?;
+        }
+        if let Some(r) = self.source_radius {
+            positive("--source-radius", r, 1000.0)?;
+        }
+        if let Some(v) = self.voxel_size {
+            in_range("--voxel-size", v, sgam_map::MIN_VOXEL_M..=sgam_map::MAX_VOXEL_M)?;
+        }
+        if let Some(t) = self.trunc_voxels {
+            positive("--trunc-voxels", t, sgam_map::MAX_TRUNC_VOXELS)?;
+        }
+        in_range("--depth-max", self.depth_max, 0.1..=sgam_map::MAX_DEPTH_M)?;
+        if let Some(c) = self.weight_cap {
+            in_range("--weight-cap", c, 1.0..=1e6)?;
+        }
+        Ok(())
+    }
+}
+
+/// Largest depth a 16-bit millimetre PNG holds, metres.
+pub const DEPTH_PNG_MAX_M: f32 = sgam_io::DEPTH_PNG_MAX_MM as f32 / 1000.0;
+
+/// What a run writes besides its frames, poses and mesh.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct OutputArgs {
+    /// Snapshot (map + keyframe index + cursor) every N steps, for --resume.
+    #[arg(long, default_value_t = DEFAULT_SNAPSHOT_EVERY)]
+    pub snapshot_every: usize,
+    /// Also write the world mesh every N steps (0 = only at the end).
+    #[arg(long, default_value_t = 0)]
+    pub mesh_every: usize,
+    /// Also write 16-bit PNG depth in millimetres (depth/NNNNN.png).
+    #[arg(long)]
+    pub depth_png: bool,
+    /// Skip the fly-through videos (flythrough.gif and flythrough.mp4).
+    #[arg(long)]
+    pub no_video: bool,
+    /// Skip flythrough.mp4 (H.264; see the README on licensing); the GIF is still written.
+    #[arg(long)]
+    pub no_mp4: bool,
+    /// Also write orbit.mp4: one turn around the final mesh.
+    #[arg(long)]
+    pub orbit_video: bool,
+}
+
+impl Default for OutputArgs {
+    fn default() -> Self {
+        Self {
+            snapshot_every: DEFAULT_SNAPSHOT_EVERY,
+            mesh_every: 0,
+            depth_png: false,
+            no_video: false,
+            no_mp4: false,
+            orbit_video: false,
+        }
+    }
+}
+
+impl OutputArgs {
+    /// Checks the intervals.
+    pub fn validate(&self) -> Result<()> {
+        in_range("--snapshot-every", self.snapshot_every, 1..=MAX_STEPS)?;
+        in_range("--mesh-every", self.mesh_every, 0..=MAX_STEPS)?;
+        Ok(())
+    }
+
+    /// The stored form.
+    pub fn settings(&self) -> OutputSettings {
+        OutputSettings {
+            snapshot_every: self.snapshot_every,
+            mesh_every: self.mesh_every,
+            depth_png: self.depth_png,
+            video: !self.no_video,
+            mp4: !self.no_mp4,
+            orbit_video: self.orbit_video,
+        }
+    }
+}
+
+/// Everything that decides what a run grows and writes, as stated by the user: the seed, the
+/// path and its length, the refiner and its sampling, the invented-pixel policy, the map and
+/// the outputs. `sgam generate` flattens it whole; [`RunSettings::resolve`] gives the run.
+#[derive(Debug, Clone, PartialEq, Args)]
+pub struct RunSettings {
+    /// The seed frame.
+    #[command(flatten)]
+    pub seed: SeedSettings,
+    /// The camera path.
+    #[command(flatten)]
+    pub path: PathSettings,
+    /// Number of generation steps (poses after the seed).
+    #[arg(long, default_value_t = DEFAULT_STEPS)]
+    pub steps: usize,
+    /// The refiner.
+    #[command(flatten)]
+    pub refiner: RefinerSettings,
+    /// Its sampling.
+    #[command(flatten)]
+    pub sampling: SamplingSettings,
+    /// The invented-pixel policy.
+    #[command(flatten)]
+    pub invented: InventedPixelSettings,
+    /// The map and sources.
+    #[command(flatten)]
+    pub map: MapSettings,
+    /// The outputs.
+    #[command(flatten)]
+    pub outputs: OutputArgs,
+}
+
+impl Default for RunSettings {
+    fn default() -> Self {
+        Self::clevr(HELD_OUT_SEED_BASE)
+    }
+}
+
+impl RunSettings {
+    /// The default run from synthetic scene `scene`: the bundled model with the default
+    /// sampling along the zig-zag, [`DEFAULT_STEPS`] steps.
+    pub fn clevr(scene: u64) -> Self {
+        Self {
+            seed: SeedSettings::synthetic(scene),
+            path: PathSettings::default(),
+            steps: DEFAULT_STEPS,
+            refiner: RefinerSettings::default(),
+            sampling: SamplingSettings::default(),
+            invented: InventedPixelSettings::default(),
+            map: MapSettings::default(),
+            outputs: OutputArgs::default(),
+        }
+    }
+
+    /// Checks every option and the combinations that would otherwise be silently ignored;
+    /// errors name the option and the accepted range.
+    pub fn validate(&self) -> Result<()> {
+        self.seed.validate()?;
+        self.path.validate()?;
+        in_range("--steps", self.steps, 1..=MAX_STEPS)?;
+        self.refiner.validate()?;
+        self.sampling.validate()?;
+        self.invented.validate()?;
+        self.map.validate()?;
+        self.outputs.validate()?;
+        if self.outputs.depth_png && self.map.depth_max > DEPTH_PNG_MAX_M {
+            config_error!(
+                "--depth-png stores millimetres in 16 bits (at most {DEPTH_PNG_MAX_M} m) but --depth-max is {} m; \
+                 lower --depth-max or leave out --depth-png (depth/NNNNN.npy holds every depth)",
+                self.map.depth_max
+            );
+        }
+        Ok(())
+    }
+
+    /// The refiner these settings name: `--no-refine` passes the guidance through, the null
+    /// stand-in fills holes by push-pull, the model samples as [`SamplingSettings`] says.
+    pub fn refiner_spec(&self) -> RefinerSpec {
+        match self.refiner.effective() {
+            RefinerKind::Auto | RefinerKind::Model => {
+                RefinerSpec::Model { model: self.refiner.model.clone(), options: self.sampling.refiner_options() }
+            }
+            RefinerKind::Null => RefinerSpec::Null { fill: !self.refiner.no_refine },
+            RefinerKind::Oracle => RefinerSpec::Oracle,
+        }
+    }
+
+    /// The run these settings describe, every default applied: the seed's preset (CLEVR or
+    /// Google Earth) fills the map and path options left out.
+    pub fn resolve(&self) -> Result<RunConfig> {
+        let seed = self.seed.spec()?;
+        let preset = seed.preset();
+        let trajectory = self.path.spec(self.steps, preset.step_m)?;
+        let m = &self.map;
+        // the oracle is the true world: its pixels are never changed
+        let invents = self.refiner.effective() != RefinerKind::Oracle;
+        let p = &self.invented;
+        Ok(RunConfig {
+            version: RUN_CONFIG_VERSION,
+            seed,
+            trajectory,
+            steps: self.steps,
+            refiner: self.refiner_spec(),
+            map: sgam_map::TsdfConfig {
+                voxel_size_m: m.voxel_size.unwrap_or(preset.voxel_size_m),
+                trunc_voxels: m.trunc_voxels.unwrap_or(preset.trunc_voxels),
+                depth_min_m: 0.05,
+                depth_max_m: m.depth_max,
+                weight_cap: m.weight_cap,
+                weight_threshold: 1.0,
+            },
+            k_sources: m.k_sources.unwrap_or(preset.k_sources),
+            source_radius_m: m.source_radius.unwrap_or(preset.source_radius_m),
+            no_map: m.no_map,
+            run_seed: self.sampling.seed,
+            ground_snap_m: (invents && p.ground_snap > 0.0).then_some(p.ground_snap),
+            snap_flying_pixels: invents && p.flying_pixels == FlyingPixels::Snap,
+            carve_free_space: invents && p.free_space == FreeSpace::Carve,
+            outputs: self.outputs.settings(),
+        })
+    }
+}
+
+impl RunConfig {
+    /// The default run from synthetic scene `scene` ([`RunSettings::clevr`], resolved).
+    pub fn clevr(scene: u64) -> Self {
+        match RunSettings::clevr(scene).resolve() {
+            Ok(c) => c,
+            // a synthetic seed along the zig-zag with every default: nothing to refuse
+            Err(e) => unreachable!("the default run resolves: {e}"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        run: RunSettings,
+    }
+
+    #[test]
+    fn every_groups_default_is_the_empty_command_line() {
+        let parsed = Cli::parse_from(["sgam"]).run;
+        assert_eq!(parsed.seed, SeedSettings::default());
+        assert_eq!(parsed.path, PathSettings::default());
+        assert_eq!(parsed.refiner, RefinerSettings::default());
+        assert_eq!(parsed.sampling, SamplingSettings::default());
+        assert_eq!(parsed.invented, InventedPixelSettings::default());
+        assert_eq!(parsed.map, MapSettings::default());
+        assert_eq!(parsed.outputs, OutputArgs::default());
+        assert_eq!(parsed, RunSettings::default());
+        // and a changed option shows: the comparison is not vacuous
+        let hot = Cli::parse_from(["sgam", "--temperature", "2"]).run;
+        assert_ne!(hot, RunSettings::default());
+        assert_eq!(hot.sampling.temperature, 2.0);
+    }
+
+    #[test]
+    fn the_default_run_is_the_clevr_preset_with_every_invented_pixel_filter() {
+        let c = RunConfig::clevr(7);
+        c.validate().unwrap();
+        assert_eq!(c.seed, SeedSpec::Synthetic { scene: 7, res: 256 });
+        assert_eq!(c.trajectory, TrajectorySpec::Zigzag { side: 30, step_m: 0.408 });
+        assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 5.0, 5));
+        assert_eq!(c.map, crate::clevr_generator_config(0).tsdf, "generation and training share the map");
+        assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (Some(1.0), true, true));
+        let RefinerSpec::Model { model: None, options } = c.refiner else { panic!("{:?}", c.refiner) };
+        assert_eq!((options.cells_per_pass, options.within_class_temperature), (8, Some(0.6)));
+        assert!(options.keep_observed);
+        // the oracle's pixels are never changed, whatever the policy says
+        let mut oracle = RunSettings::clevr(7);
+        oracle.refiner = RefinerSettings::kind(RefinerKind::Oracle);
+        let c = oracle.resolve().unwrap();
+        assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
+        // `keep` turns each filter off for the model
+        let mut keep = RunSettings::clevr(7);
+        keep.invented =
+            InventedPixelSettings { ground_snap: 0.0, flying_pixels: FlyingPixels::Keep, free_space: FreeSpace::Keep };
+        let c = keep.resolve().unwrap();
+        assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
+    }
+
+    #[test]
+    fn a_google_earth_seed_takes_its_preset_and_no_refine_fills_nothing() {
+        let mut ge = RunSettings::default();
+        ge.seed.seed_google_earth = Some("seed0".into());
+        let c = ge.resolve().unwrap();
+        assert_eq!((c.map.voxel_size_m, c.k_sources, c.source_radius_m), (0.01, 3, 0.3));
+        assert_eq!(c.trajectory, TrajectorySpec::Zigzag { side: 30, step_m: 0.02 });
+        ge.refiner.no_refine = true;
+        assert_eq!(ge.resolve().unwrap().refiner, RefinerSpec::Null { fill: false });
+        // an option given by the user wins over the preset
+        ge.map.voxel_size = Some(0.02);
+        assert_eq!(ge.resolve().unwrap().map.voxel_size_m, 0.02);
+    }
+
+    #[test]
+    fn options_that_cannot_apply_are_refused_naming_them() {
+        let err = |s: RunSettings| s.validate().unwrap_err().to_string();
+        let s = RunSettings {
+            refiner: RefinerSettings {
+                refiner: RefinerKind::Null,
+                model: Some("m.safetensors".into()),
+                no_refine: false,
+            },
+            ..RunSettings::default()
+        };
+        assert!(err(s).contains("--model"));
+        let mut s = RunSettings::default();
+        s.path.trajectory_file = Some("poses.txt".into());
+        assert!(err(s).contains("--trajectory-file"));
+        let mut s = RunSettings::default();
+        s.seed.seed_template = Some("a".into());
+        s.seed.seed_google_earth = Some("b".into());
+        assert!(err(s).contains("different seeds"));
+        let mut s = RunSettings::default();
+        s.outputs.depth_png = true;
+        s.map.depth_max = 100.0;
+        assert!(err(s).contains("--depth-png"));
+        let mut s = RunSettings::default();
+        s.sampling.cells_per_pass = 0;
+        assert!(err(s).contains("--cells-per-pass 0 is out of range"));
+    }
+}
