@@ -452,8 +452,62 @@ fn flood_fill(hf: &HeightField, mask: &[bool], seen: &mut [bool], start: usize) 
     out
 }
 
+/// Statistics pooled over several worlds (the seeds of `sgam eval world`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PooledStats {
+    /// Summed new area, m².
+    pub new_area_m2: f64,
+    /// Objects per 100 m² of new area (all seeds' objects over all seeds' area).
+    pub objects_per_100m2: f64,
+    /// Median object footprint over all seeds' objects, m².
+    pub median_object_area_m2: f64,
+    /// 90th percentile object footprint, m².
+    pub p90_object_area_m2: f64,
+    /// Share of new area covered by objects.
+    pub object_cover: f64,
+    /// Mean over seeds of the object colour saturation (seeds without objects skipped).
+    pub object_saturation: f64,
+    /// Root of the mean over seeds of the squared ground RMS, mm.
+    pub ground_rms_mm: f64,
+    /// Median solidity, median elongation and compact share over all seeds' objects.
+    pub object_shape: ShapeSummary,
+}
+
+impl PooledStats {
+    /// Pools `stats`: counts and areas summed, footprints and shapes over all worlds' objects,
+    /// saturation averaged over the worlds with objects, ground RMS as a root mean square.
+    pub fn of(stats: &[WorldStats]) -> Self {
+        let area: f64 = stats.iter().map(|s| s.new_area_m2 as f64).sum();
+        let objects: usize = stats.iter().map(|s| s.objects).sum();
+        let mut areas: Vec<f32> = stats.iter().flat_map(|s| s.object_areas_m2.iter().copied()).collect();
+        areas.sort_by(f32::total_cmp);
+        let covered: f64 = stats.iter().map(|s| s.object_cover as f64 * s.new_area_m2 as f64).sum();
+        let sats: Vec<f64> = stats
+            .iter()
+            .filter(|s| s.objects > 0 && s.object_saturation.is_finite())
+            .map(|s| s.object_saturation as f64)
+            .collect();
+        let rms2: Vec<f64> =
+            stats.iter().filter(|s| s.ground_rms_mm.is_finite()).map(|s| (s.ground_rms_mm as f64).powi(2)).collect();
+        Self {
+            new_area_m2: area,
+            objects_per_100m2: if area > 0.0 { 100.0 * objects as f64 / area } else { 0.0 },
+            median_object_area_m2: quantile(&areas, 0.5) as f64,
+            p90_object_area_m2: quantile(&areas, 0.9) as f64,
+            object_cover: if area > 0.0 { covered / area } else { 0.0 },
+            object_saturation: if sats.is_empty() { 0.0 } else { sats.iter().sum::<f64>() / sats.len() as f64 },
+            ground_rms_mm: if rms2.is_empty() {
+                f64::NAN
+            } else {
+                (rms2.iter().sum::<f64>() / rms2.len() as f64).sqrt()
+            },
+            object_shape: ShapeSummary::of(&stats.iter().flat_map(|s| s.object_shapes.clone()).collect::<Vec<_>>()),
+        }
+    }
+}
+
 /// `q`-quantile of ascending `sorted`, linear between ranks; 0 when empty.
-fn quantile(sorted: &[f32], q: f32) -> f32 {
+pub fn quantile(sorted: &[f32], q: f32) -> f32 {
     if sorted.is_empty() {
         return 0.0;
     }

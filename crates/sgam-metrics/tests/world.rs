@@ -510,3 +510,41 @@ fn object_shape_is_a_bounded_ratio_that_ignores_position_and_orientation() {
     // a diagonal row of 8-connected cells is its own hull (a segment)
     assert_eq!(object_shape(&[[0, 0], [1, 1], [2, 2], [3, 3]]).map(|s| s.solidity), Some(1.0));
 }
+
+#[test]
+fn pooled_statistics_sum_areas_pool_objects_and_average_per_world_figures() {
+    use sgam_metrics::world::{PooledStats, ShapeSummary};
+    let world = |area: f32, objects: Vec<f32>, cover: f32, saturation: f32, rms: f32| WorldStats {
+        new_area_m2: area,
+        ground_height_m: 0.0,
+        objects: objects.len(),
+        objects_per_100m2: 100.0 * objects.len() as f32 / area,
+        median_object_area_m2: 0.0,
+        p90_object_area_m2: 0.0,
+        object_cover: cover,
+        object_saturation: saturation,
+        ground_rms_mm: rms,
+        object_areas_m2: objects,
+        object_shape: ShapeSummary::default(),
+        object_shapes: Vec::new(),
+    };
+    // 100 m² with objects of 1 and 3 m², 300 m² with one of 2 m² and a flat world of 100 m²
+    let stats = [
+        world(100.0, vec![1.0, 3.0], 0.04, 0.5, 30.0),
+        world(300.0, vec![2.0], 0.01, 0.7, 40.0),
+        world(100.0, vec![], 0.0, f32::NAN, f32::NAN),
+    ];
+    let p = PooledStats::of(&stats);
+    assert_eq!(p.new_area_m2, 500.0);
+    // 3 objects over 500 m²; footprints pooled over worlds: 1, 2, 3
+    assert!((p.objects_per_100m2 - 0.6).abs() < 1e-9, "{p:?}");
+    assert_eq!(p.median_object_area_m2, 2.0);
+    // linear between ranks: 2 + 0.8 * (3 - 2)
+    assert!((p.p90_object_area_m2 - 2.8).abs() < 1e-6, "{p:?}");
+    // cover weighted by area: (4 + 3) / 500
+    assert!((p.object_cover - 0.014).abs() < 1e-6, "{p:?}");
+    // saturation averaged over the worlds with objects; RMS over the worlds with a ground
+    assert!((p.object_saturation - 0.6).abs() < 1e-6, "{p:?}");
+    assert!((p.ground_rms_mm - ((900.0f64 + 1600.0) / 2.0).sqrt()).abs() < 1e-4, "{p:?}");
+    assert_eq!(PooledStats::of(&[]).objects_per_100m2, 0.0);
+}

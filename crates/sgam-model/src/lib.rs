@@ -30,6 +30,7 @@ pub mod context;
 pub mod context_train;
 pub mod convert;
 pub mod decoder_tune;
+pub mod features;
 pub mod flops;
 pub mod generative;
 pub mod loss;

@@ -62,7 +62,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
         EvalCommand::World(a) => {
             let v = crate::eval_world::evaluate(&a)?;
             if !a.json {
-                eprint!("{}", crate::eval_world::summary_text(&v));
+                eprint!("{}", crate::eval_report::summary_text(&v));
             }
             println!("{v}");
             Ok(())

@@ -277,8 +277,9 @@ mod tests {
         let end = "<!-- generate-defaults:end -->";
         let expected = expected_rows();
         let table: String = expected.iter().map(|(o, d, h)| format!("| `{o}` | `{d}` | {h} |\n")).collect();
-        let hint =
-            format!("README.md's table should read:\n{begin}\n| option | default | what |\n|---|---|---|\n{table}{end}");
+        let hint = format!(
+            "README.md's table should read:\n{begin}\n| option | default | what |\n|---|---|---|\n{table}{end}"
+        );
         let (Some(a), Some(b)) = (readme.find(begin), readme.find(end)) else { panic!("no defaults table; {hint}") };
         let rows: Vec<(String, String, String)> = readme[a + begin.len()..b]
             .lines()

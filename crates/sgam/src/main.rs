@@ -8,6 +8,8 @@ mod bench;
 mod caption;
 mod convert;
 mod eval;
+mod eval_grow;
+mod eval_report;
 mod eval_table;
 mod eval_trajectories;
 mod eval_world;
