@@ -24,6 +24,7 @@ mod atomic;
 mod clevr;
 mod depth;
 mod error;
+mod h264mp4;
 mod images;
 mod mesh;
 mod nerf;
@@ -43,6 +44,7 @@ pub use depth::{
     DepthType, NPY_DEPTH_INVALID_MIN,
 };
 pub use error::IoError;
+pub use h264mp4::{split_annex_b, write_h264_mp4};
 pub use images::{
     depth_to_mm, image_size, read_depth_png_mm, read_depth_png_scaled, read_rgb, to_srgb8, write_depth_png_mm,
     write_rgb_png, DEPTH_PNG_INVALID_MAX, DEPTH_PNG_MAX_MM,

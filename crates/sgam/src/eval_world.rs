@@ -33,7 +33,7 @@ use sgam_pipeline::settings::{
 };
 use sgam_pipeline::HELD_OUT_SEED_BASE;
 
-pub use sgam_model::features::{FeatureExtractor, FEATURE_MODEL};
+use sgam_model::features::FeatureExtractor;
 
 /// Arguments of `sgam eval world`.
 #[derive(Debug, Clone, Args)]

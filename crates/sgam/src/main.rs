@@ -28,6 +28,7 @@ mod train_decoder;
 mod train_sampler;
 mod video;
 mod view;
+mod viewer_page;
 
 use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 

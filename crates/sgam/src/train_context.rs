@@ -12,8 +12,8 @@ use sgam_model::context_train::{context_pairs, ContextPair, ContextTrainConfig, 
 use sgam_model::params::from_safetensors_bytes;
 use sgam_pipeline::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
 
-use crate::eval_world::FEATURE_MODEL;
 use crate::progress;
+use sgam_model::features::FEATURE_MODEL;
 
 /// Arguments of `sgam train context`.
 #[derive(Debug, Args)]

@@ -13,8 +13,8 @@ use sgam_model::decoder_tune::{DecoderTuneConfig, DecoderTuner, BORDER_ROWS};
 use sgam_model::params::from_safetensors_bytes;
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
 
-use crate::eval_world::FEATURE_MODEL;
 use crate::progress;
+use sgam_model::features::FEATURE_MODEL;
 use sgam_pipeline::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
 
 /// Arguments of `sgam train decoder`.

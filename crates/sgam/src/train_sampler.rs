@@ -1,16 +1,17 @@
 //! `sgam train sampler`: the generative stage 2 (see `sgam_model::generative`).
 
 use std::io::Write;
+use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
+use clap::Args;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sgam_model::generative::{CodeTrainConfig, CodeTrainer};
 use sgam_model::params::from_safetensors_bytes;
 
-use crate::eval_world::FEATURE_MODEL;
 use crate::progress;
-use crate::train::SamplerArgs;
+use sgam_model::features::FEATURE_MODEL;
 use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 fn validate(a: &SamplerArgs) -> Result<()> {
@@ -50,6 +51,87 @@ fn validate(a: &SamplerArgs) -> Result<()> {
         bail!("--crop {} must be in 16..=256", a.crop);
     }
     Ok(())
+}
+
+/// Arguments of `sgam train sampler`.
+#[derive(Debug, Args)]
+#[command(
+    after_help = "Examples:\n  sgam train sampler --run runs/sampler --steps 12000          # from the bundled model\n  sgam train sampler --run runs/sampler --steps 16000 --lr-decay-from 12000   # resume, decayed tail\n  sgam train export runs/sampler/ckpt/model.safetensors models/compact.safetensors\n\nThe training pairs are recorded from the generator (oracle refiner, training scenes) when the\nrun starts and kept in memory; the frozen target encoder is copied to RUN/target.safetensors so\na resumed run computes the same targets. RUN/log.jsonl has one line per step, RUN/val.jsonl the\nheld-out cross-entropy and accuracy."
+)]
+pub struct SamplerArgs {
+    /// Run folder (checkpoint in RUN/ckpt, logs).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Model whose codebook and decoder are kept and whose encoder gives the targets; also the
+    /// starting point unless --warm-start is given (default: `models/features.safetensors`, the
+    /// stage-2 regression model the bundled sampler was built on).
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// Start from this sampler model (e.g. the bundled `models/compact.safetensors`) instead of
+    /// --init; it must share --init's codebook and decoder (new runs only).
+    #[arg(long)]
+    pub warm_start: Option<PathBuf>,
+    /// Weight of the depth term: L1 on the decoded disparity of codes drawn at T = 1 against
+    /// the target codes', in missing pixels (0 = cross-entropy only).
+    #[arg(long, default_value_t = 0.0)]
+    pub depth_weight: f32,
+    /// MaskGIT training: probability that a training pair has a random share of its missing
+    /// cells revealed (with the decoded target codes) before the step, as generation's later
+    /// passes see a hole around cells already drawn. 0 = the holes as recorded (the default:
+    /// 0.5 for 5,000 steps did not grow better worlds, docs/MODEL.md).
+    #[arg(long, default_value_t = 0.0)]
+    pub reveal: f32,
+    /// Do not add the two ray (pixel-direction) input channels.
+    #[arg(long)]
+    pub no_rays: bool,
+    /// Use the paper's distance logits `-||z - e_k||^2 / tau` instead of a learned code head
+    /// (a 1x1 conv to one logit per code, initialised equal to them; it can express
+    /// multimodal distributions, the distances cannot).
+    #[arg(long)]
+    pub distance_logits: bool,
+    /// Total optimisation steps (a resumed run continues up to this).
+    #[arg(long, default_value_t = 12_000)]
+    pub steps: u64,
+    /// Pairs per step.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Crop side in pixels (a multiple of the model's downsampling factor).
+    #[arg(long, default_value_t = 128)]
+    pub crop: u32,
+    /// Training pairs recorded at the start (kept in memory, ~0.3 MB each at crop 128).
+    #[arg(long, default_value_t = 6000)]
+    pub pairs: usize,
+    /// Held-out pairs (from other training scenes) for the validation line.
+    #[arg(long, default_value_t = 256)]
+    pub val_pairs: usize,
+    /// Steps per recorded generator run.
+    #[arg(long, default_value_t = 40)]
+    pub steps_per_run: usize,
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 3e-4)]
+    pub lr: f64,
+    /// Half-cosine decay of the learning rate from this step to --steps.
+    #[arg(long, value_name = "STEP")]
+    pub lr_decay_from: Option<u64>,
+    /// Loss weight of observed latent cells relative to missing ones.
+    #[arg(long, default_value_t = 0.2)]
+    pub observed_weight: f32,
+    /// Soft targets: credit spread over codes within this many codebook spacings of the
+    /// target code (codes that decode alike); 0 = one-hot.
+    #[arg(long, default_value_t = 1.0)]
+    pub target_smoothing: f32,
+    /// Checkpoint every N steps.
+    #[arg(long, default_value_t = 250)]
+    pub ckpt_every: u64,
+    /// Validate every N steps.
+    #[arg(long, default_value_t = 500)]
+    pub val_every: u64,
+    /// Training scenes: seeds 0..N (held-out evaluation seeds start at 1000000).
+    #[arg(long, default_value_t = 100_000)]
+    pub scenes: u64,
+    /// Seed of the pair recording and the batch order.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
 }
 
 /// What a run's recorded pairs are drawn with (its options; the cache key of `RUN/pairs-*.bin`).

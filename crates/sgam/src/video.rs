@@ -6,7 +6,6 @@
 //! only the OpenH264 binaries Cisco distributes, not a build from source: see the README before
 //! shipping binaries; `sgam generate --no-mp4` turns MP4 output off.
 
-use std::io::Cursor;
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
@@ -96,7 +95,7 @@ where
         let key = matches!(stream.frame_type(), FrameType::IDR | FrameType::I);
         // Annex B (start codes) to MP4's length-prefixed NAL units; SPS/PPS go to the avcC box.
         let mut sample = Vec::new();
-        for nal in split_annex_b(&stream.to_vec()) {
+        for nal in sgam_io::split_annex_b(&stream.to_vec()) {
             match nal.first().map(|b| b & 0x1f) {
                 Some(7) => sps = sps.or_else(|| Some(nal.to_vec())),
                 Some(8) => pps = pps.or_else(|| Some(nal.to_vec())),
@@ -115,70 +114,8 @@ where
     let (Some(sps), Some(pps), Some((_, ew, eh))) = (sps, pps, encoder) else {
         bail!("{}: no frames to encode", path.display());
     };
-    let bytes =
-        mux(&samples, &sps, &pps, ew, eh, fps).with_context(|| format!("{}: MP4 muxing failed", path.display()))?;
-    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?;
-    Ok(VideoInfo { frames: samples.len(), width: ew, height: eh, bytes: bytes.len() as u64 })
-}
-
-/// The MP4 file of length-prefixed H.264 `samples` (`(bytes, is_key_frame)`), one per frame.
-fn mux(samples: &[(Vec<u8>, bool)], sps: &[u8], pps: &[u8], width: u32, height: u32, fps: u32) -> Result<Vec<u8>> {
-    // A timescale of 1000 ticks per frame keeps every duration exact.
-    let timescale = fps * 1000;
-    let config = mp4::Mp4Config {
-        major_brand: str::parse("isom")?,
-        minor_version: 512,
-        compatible_brands: ["isom", "iso2", "avc1", "mp41"].iter().map(|b| str::parse(b)).collect::<Result<_, _>>()?,
-        timescale,
-    };
-    let mut writer = mp4::Mp4Writer::write_start(Cursor::new(Vec::new()), &config)?;
-    writer.add_track(&mp4::TrackConfig {
-        track_type: mp4::TrackType::Video,
-        timescale,
-        language: "und".into(),
-        media_conf: mp4::MediaConfig::AvcConfig(mp4::AvcConfig {
-            width: u16::try_from(width)?,
-            height: u16::try_from(height)?,
-            seq_param_set: sps.to_vec(),
-            pic_param_set: pps.to_vec(),
-        }),
-    })?;
-    for (i, (bytes, key)) in samples.iter().enumerate() {
-        let sample = mp4::Mp4Sample {
-            start_time: i as u64 * 1000,
-            duration: 1000,
-            rendering_offset: 0,
-            is_sync: *key,
-            bytes: mp4::Bytes::copy_from_slice(bytes),
-        };
-        writer.write_sample(1, &sample)?;
-    }
-    writer.write_end()?;
-    Ok(writer.into_writer().into_inner())
-}
-
-/// The NAL units of an Annex B byte stream (start codes `00 00 01` / `00 00 00 01` removed).
-pub fn split_annex_b(stream: &[u8]) -> Vec<&[u8]> {
-    let mut starts = Vec::new();
-    let mut i = 0;
-    while i + 3 <= stream.len() {
-        if stream[i] == 0 && stream[i + 1] == 0 && stream[i + 2] == 1 {
-            starts.push(i + 3);
-            i += 3;
-        } else {
-            i += 1;
-        }
-    }
-    let mut nals = Vec::with_capacity(starts.len());
-    for (k, &s) in starts.iter().enumerate() {
-        let mut end = starts.get(k + 1).map_or(stream.len(), |&n| n - 3);
-        // a 4-byte start code leaves one zero before the next 3-byte code
-        while end > s && stream[end - 1] == 0 && k + 1 < starts.len() {
-            end -= 1;
-        }
-        nals.push(&stream[s..end]);
-    }
-    nals
+    let bytes = sgam_io::write_h264_mp4(path, &samples, &sps, &pps, (ew, eh), fps)?;
+    Ok(VideoInfo { frames: samples.len(), width: ew, height: eh, bytes })
 }
 
 /// `img` with odd sides padded by one repeated row / column.
@@ -258,14 +195,9 @@ pub fn to_rgb8(img: &Image<[f32; 3]>) -> RgbImage {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
+    use std::io::Cursor;
 
-    #[test]
-    fn annex_b_splits_on_three_and_four_byte_start_codes() {
-        let s = [0, 0, 0, 1, 0x67, 1, 2, 0, 0, 1, 0x68, 3, 0, 0, 0, 1, 0x65, 0, 4];
-        let nals = split_annex_b(&s);
-        assert_eq!(nals, vec![&[0x67, 1, 2][..], &[0x68, 3][..], &[0x65, 0, 4][..]]);
-    }
+    use super::*;
 
     #[test]
     fn odd_frames_are_padded_by_repeating_the_edge() {
