@@ -124,6 +124,10 @@ impl FuseArgs {
         if let Some(p) = &self.stats_json {
             check_output_file("--stats-json", p)?;
         }
+        let mut outputs = vec![("--out", self.out.as_path())];
+        outputs.extend(self.save_map.as_deref().map(|p| ("--save-map", p)));
+        outputs.extend(self.stats_json.as_deref().map(|p| ("--stats-json", p)));
+        crate::guard::distinct_outputs(&outputs)?;
         Ok(())
     }
 }

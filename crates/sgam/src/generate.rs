@@ -111,9 +111,9 @@ impl GenerateArgs {
 }
 
 /// Checks of the command line that the arguments alone cannot tell: options given with
-/// `--resume` (a resumed run keeps its own). `given` are
-/// the options written on the command line. (Evaluation commands that build arguments
-/// themselves skip this.)
+/// `--resume` (a resumed run keeps its own) and the synthetic seed's options with another seed.
+/// `given` are the options written on the command line. (Evaluation commands that build
+/// arguments themselves skip this.)
 pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
     if args.resume.is_some() {
         let ignored: Vec<&str> = given
@@ -128,6 +128,26 @@ pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
                 ignored.join(", "),
                 if ignored.len() == 1 { "it" } else { "them" }
             );
+        }
+    }
+    // the synthetic seed's options do nothing for a seed read from files (after the options'
+    // own checks, which name a bad seed file first)
+    if args.resume.is_none() {
+        args.validate()?;
+    }
+    let s = &args.run.seed;
+    if let Some(seed) = [
+        (s.seed_rgb.is_some(), "--seed-rgb"),
+        (s.seed_template.is_some(), "--seed-template"),
+        (s.seed_google_earth.is_some(), "--seed-google-earth"),
+    ]
+    .into_iter()
+    .find_map(|(given, name)| given.then_some(name))
+    {
+        for option in ["--res", "--seed-scene"] {
+            if given.iter().any(|g| g == option) {
+                bail!("{option} applies to synthetic seeds only; {seed} gives the seed frame (leave {option} out)");
+            }
         }
     }
     Ok(())

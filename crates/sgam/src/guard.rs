@@ -13,6 +13,20 @@ use anyhow::{bail, Context, Result};
 /// program get the same errors.
 pub use sgam_pipeline::settings::{in_range, positive};
 
+/// Refuses two output options naming one file: the second write would replace the first
+/// output, and the command would still exit 0. `files` are `(option, path)`.
+pub fn distinct_outputs(files: &[(&str, &Path)]) -> Result<()> {
+    let key = |p: &Path| std::path::absolute(p).unwrap_or_else(|_| p.to_path_buf());
+    for (i, (a, pa)) in files.iter().enumerate() {
+        for (b, pb) in &files[..i] {
+            if key(pa) == key(pb) {
+                bail!("{a} {} is the same file as {b}: give each output its own path", pa.display());
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Name of the lock file inside a run folder.
 pub const LOCK_FILE: &str = ".sgam-lock";
 

@@ -141,7 +141,10 @@ fn corrupt_files_per_format_are_clean_errors_naming_the_file() {
     let junk_npy = t.join("depth.npy");
     std::fs::write(&junk_npy, b"\x93NUMPY\x01\x00garbage").unwrap();
     let seed = |rgb: &Path, depth: &Path| {
-        let mut a = world(&out, "1");
+        // --res applies to synthetic seeds only: the world's options without it
+        let mut a: Vec<String> = world(&out, "1");
+        let res = a.iter().position(|x| x == "--res").unwrap();
+        a.drain(res..res + 2);
         a.extend(["--seed-rgb", s(rgb), "--seed-depth", s(depth), "--intrinsics", "30,30,16,16"].map(String::from));
         a
     };
@@ -385,6 +388,31 @@ fn bad_options_are_refused_before_work_naming_the_option() {
             "--save-map",
         ),
         (vec!["fuse".into(), s(t).into(), "--out".into(), s(&t.join("m.xyz")).into()], "--out"),
+        // two outputs on one file: the map would replace the mesh
+        (
+            vec![
+                "fuse".into(),
+                s(t).into(),
+                "--out".into(),
+                s(&t.join("m.ply")).into(),
+                "--save-map".into(),
+                s(&t.join(".").join("m.ply")).into(),
+            ],
+            "is the same file as --out",
+        ),
+        // options of the synthetic seed with a seed read from files
+        (
+            vec![
+                "generate".into(),
+                "--seed-template".into(),
+                s(t).into(),
+                "--res".into(),
+                "64".into(),
+                "--out".into(),
+                s(&out).into(),
+            ],
+            "--res applies to synthetic seeds only",
+        ),
         // synth
         (
             vec!["synth".into(), "--out".into(), s(&t.join("ds")).into(), "--objects".into(), "1000000000".into()],
