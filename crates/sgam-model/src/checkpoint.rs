@@ -17,6 +17,54 @@ use serde::{Deserialize, Serialize};
 use crate::params::write_atomic;
 use crate::ModelError;
 
+/// The position of a trainer's random stream, as its state stores it (`rng_seed`, `rng_stream`,
+/// `rng_word_pos`), so a resumed run draws what the uninterrupted run would have.
+pub fn rng_position(rng: &rand_chacha::ChaCha8Rng) -> ([u8; 32], u64, u128) {
+    (rng.get_seed(), rng.get_stream(), rng.get_word_pos())
+}
+
+/// A generator at a position [`rng_position`] gave.
+pub fn rng_at(seed: [u8; 32], stream: u64, word_pos: u128) -> rand_chacha::ChaCha8Rng {
+    use rand::SeedableRng;
+    let mut rng = rand_chacha::ChaCha8Rng::from_seed(seed);
+    rng.set_stream(stream);
+    rng.set_word_pos(word_pos);
+    rng
+}
+
+/// Reads a trainer's committed checkpoint folder `dir` (already verified with
+/// [`verify_folder`]): its `state.json` of format `version` (`what` names the trainer in errors)
+/// and its `model.safetensors` weights.
+pub fn read_trainer_state<S: serde::de::DeserializeOwned>(
+    dir: &Path,
+    what: &str,
+    version: u32,
+) -> Result<(S, BTreeMap<String, crate::params::NamedTensor>), ModelError> {
+    let path = dir.join("state.json");
+    let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
+    // the version first: a state of another version may not parse as this one
+    #[derive(Deserialize)]
+    struct Versioned {
+        version: u32,
+    }
+    let stored: Versioned = serde_json::from_slice(&bytes)
+        .map_err(|e| ModelError::checkpoint(&path, format!("not a {what} state: {e}")))?;
+    if stored.version != version {
+        return Err(ModelError::checkpoint(
+            &path,
+            format!("state version {} (this build reads {version})", stored.version),
+        ));
+    }
+    let state = serde_json::from_slice(&bytes)
+        .map_err(|e| ModelError::checkpoint(&path, format!("not a {what} state: {e}")))?;
+    let weights = dir.join("model.safetensors");
+    let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
+    let tensors = crate::params::from_safetensors_bytes(&wbytes)
+        .map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?
+        .0;
+    Ok((state, tensors))
+}
+
 /// File name of the manifest inside a checkpoint folder.
 pub const MANIFEST: &str = "manifest.json";
 /// Manifest format this build writes and reads.

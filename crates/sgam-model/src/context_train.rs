@@ -35,9 +35,7 @@ use crate::context::{CellState, CodeContext, ContextInput};
 use crate::generative::{codebook_spacing, CodePair};
 use crate::model::VqModel;
 use crate::packing::{missing_cells, pack_input};
-use crate::params::{
-    from_safetensors_bytes, load_named, named_tensors, to_safetensors_bytes, write_atomic, NamedTensor, WeightPrecision,
-};
+use crate::params::{load_named, named_tensors, to_safetensors_bytes, write_atomic, NamedTensor, WeightPrecision};
 use crate::quantize::{squared_distances, to_host};
 use crate::ModelError;
 
@@ -436,14 +434,15 @@ impl ContextTrainer {
         let meta = crate::refiner::weight_metadata(&self.model_config)?;
         let bytes = to_safetensors_bytes(&weights, WeightPrecision::F32, Some(meta))?;
         let optim = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
+        let (rng_seed, rng_stream, rng_word_pos) = crate::checkpoint::rng_position(&self.rng);
         let state = ContextState {
             version: STATE_VERSION,
             model_config: self.model_config.clone(),
             train_config: self.train_config.clone(),
             step: self.step,
-            rng_seed: self.rng.get_seed(),
-            rng_stream: self.rng.get_stream(),
-            rng_word_pos: self.rng.get_word_pos(),
+            rng_seed,
+            rng_stream,
+            rng_word_pos,
         };
         let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
         commit_folder(run_dir, "ckpt", |dir| {
@@ -465,20 +464,8 @@ impl ContextTrainer {
         let dir = committed_folder(run_dir, "ckpt")
             .ok_or_else(|| ModelError::checkpoint(run_dir, "no committed checkpoint (ckpt/ with a manifest)"))?;
         verify_folder(&dir)?;
-        let path = dir.join("state.json");
-        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
-        let state: ContextState = serde_json::from_slice(&bytes)
-            .map_err(|e| ModelError::checkpoint(&path, format!("not a context training state: {e}")))?;
-        if state.version != STATE_VERSION {
-            return Err(ModelError::checkpoint(
-                &path,
-                format!("state version {} (this build reads {STATE_VERSION})", state.version),
-            ));
-        }
-        let weights = dir.join("model.safetensors");
-        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
-        let tensors =
-            from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
+        let (state, tensors): (ContextState, _) =
+            crate::checkpoint::read_trainer_state(&dir, "context training", STATE_VERSION)?;
         let mut train_config = state.train_config;
         if let Some(s) = steps {
             train_config.steps = s;
@@ -490,9 +477,7 @@ impl ContextTrainer {
         let optim = dir.join("optim.bpk");
         t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
         t.step = state.step;
-        t.rng = ChaCha8Rng::from_seed(state.rng_seed);
-        t.rng.set_stream(state.rng_stream);
-        t.rng.set_word_pos(state.rng_word_pos);
+        t.rng = crate::checkpoint::rng_at(state.rng_seed, state.rng_stream, state.rng_word_pos);
         Ok(t)
     }
 }

@@ -25,9 +25,7 @@ use crate::config::ModelConfig;
 use crate::generative::{decode_rows, target_codes};
 use crate::model::VqModel;
 use crate::packing::{pack_target, unpack};
-use crate::params::{
-    from_safetensors_bytes, load_named, named_tensors, save_safetensors, NamedTensor, WeightPrecision,
-};
+use crate::params::{load_named, named_tensors, save_safetensors, NamedTensor, WeightPrecision};
 use crate::quantize::to_host;
 use crate::ModelError;
 
@@ -301,20 +299,8 @@ impl DecoderTuner {
         let dir = Self::checkpoint_dir(run_dir)
             .ok_or_else(|| ModelError::checkpoint(run_dir, "no checkpoint (ckpt/state.json)"))?;
         crate::checkpoint::verify_folder(&dir)?;
-        let path = dir.join("state.json");
-        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
-        let state: TuneState = serde_json::from_slice(&bytes)
-            .map_err(|e| ModelError::checkpoint(&path, format!("not a decoder-tuning state: {e}")))?;
-        if state.version != STATE_VERSION {
-            return Err(ModelError::checkpoint(
-                &path,
-                format!("state version {} (this build reads {STATE_VERSION})", state.version),
-            ));
-        }
-        let weights = dir.join("model.safetensors");
-        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
-        let tensors =
-            from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
+        let (state, tensors): (TuneState, _) =
+            crate::checkpoint::read_trainer_state(&dir, "decoder-tuning", STATE_VERSION)?;
         let mut config = state.config;
         if let Some(s) = steps {
             config.steps = s;

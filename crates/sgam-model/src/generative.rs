@@ -730,15 +730,16 @@ impl CodeTrainer {
         write_atomic(&new.join("optim.bpk"), &bytes)?;
         let bytes = self.optim_tau.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
         write_atomic(&new.join("optim_tau.bpk"), &bytes)?;
+        let (rng_seed, rng_stream, rng_word_pos) = crate::checkpoint::rng_position(&self.rng);
         let state = CodeState {
             version: STATE_VERSION,
             model_config: self.model_config.clone(),
             train_config: self.train_config.clone(),
             step: self.step,
             log_tau: self.temperature.log()?,
-            rng_seed: self.rng.get_seed(),
-            rng_stream: self.rng.get_stream(),
-            rng_word_pos: self.rng.get_word_pos(),
+            rng_seed,
+            rng_stream,
+            rng_word_pos,
         };
         let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
         write_atomic(&new.join("state.json"), &json)?;
@@ -801,9 +802,7 @@ impl CodeTrainer {
         }
         t.temperature = CodeTemperature::from_log(state.log_tau, &t.device).train();
         t.step = state.step;
-        t.rng = ChaCha8Rng::from_seed(state.rng_seed);
-        t.rng.set_stream(state.rng_stream);
-        t.rng.set_word_pos(state.rng_word_pos);
+        t.rng = crate::checkpoint::rng_at(state.rng_seed, state.rng_stream, state.rng_word_pos);
         Ok(t)
     }
 

@@ -27,6 +27,29 @@ pub fn distinct_outputs(files: &[(&str, &Path)]) -> Result<()> {
     Ok(())
 }
 
+/// Refuses a training `--run` folder that cannot be resumed but holds something a new run would
+/// overwrite or mix with: a `sgam generate` run (its frames and run.json), or weights and logs of
+/// a training whose checkpoint (`ckpt/` with its manifest) is gone. Call it when no checkpoint
+/// was found; `outputs` are the files this trainer writes.
+pub fn refuse_unresumable_run(run: &Path, outputs: &[&str]) -> Result<()> {
+    if ["run.json", "snapshot.bin", "rgb", "mesh.ply"].iter().any(|f| run.join(f).exists()) {
+        bail!(
+            "--run {}: is a `sgam generate` run folder, not a training run; give training a folder of its own",
+            run.display()
+        );
+    }
+    let found: Vec<&str> = outputs.iter().copied().filter(|f| run.join(f).exists()).collect();
+    if !found.is_empty() {
+        bail!(
+            "--run {}: holds {} but no checkpoint to resume from (ckpt/ or its manifest.json is gone); a new run \
+             would overwrite them: move them away or choose another --run",
+            run.display(),
+            found.join(", ")
+        );
+    }
+    Ok(())
+}
+
 /// Name of the lock file inside a run folder.
 pub const LOCK_FILE: &str = ".sgam-lock";
 

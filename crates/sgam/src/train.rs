@@ -295,6 +295,9 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     let _lock = RunLock::acquire(&args.run)?;
     crate::guard::remove_stale_temp_files(&args.run, &["ckpt", "ckpt.old", "val"])?;
     let resuming = sgam_model::train::read_checkpoint(&args.run)?.is_some();
+    if !resuming {
+        crate::guard::refuse_unresumable_run(&args.run, &["model.safetensors"])?;
+    }
     if stage == Stage::Two && args.init.is_none() && !resuming {
         bail!("stage 2 starts from a stage-1 model: pass --init RUN1/model.safetensors");
     }

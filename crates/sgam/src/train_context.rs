@@ -131,6 +131,10 @@ pub fn run(a: &ContextArgs) -> Result<()> {
     crate::guard::remove_stale_temp_files(&a.run, &[])?;
     let device = sgam_model::default_device();
     let resuming = ContextTrainer::has_checkpoint(&a.run);
+    if !resuming {
+        // (a run killed before its first checkpoint restarts: only its logs are there)
+        crate::guard::refuse_unresumable_run(&a.run, &[])?;
+    }
     let mut trainer = if resuming {
         let t = ContextTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)
             .with_context(|| format!("{}: cannot resume", a.run.display()))?;

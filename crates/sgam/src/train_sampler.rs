@@ -215,6 +215,10 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         );
     }
     let resuming = CodeTrainer::checkpoint_dir(&a.run).is_some();
+    if !resuming {
+        // (a run killed before its first checkpoint restarts: only its logs are there)
+        crate::guard::refuse_unresumable_run(&a.run, &[])?;
+    }
     let mut trainer = if resuming {
         let t = CodeTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)?;
         if t.train_config.depth_weight != a.depth_weight {

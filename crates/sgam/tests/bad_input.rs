@@ -640,6 +640,14 @@ fn resume_mismatches_and_earlier_outputs_are_refused() {
     fails(&refs(&a), &["stage-1 run", "--init"]);
     // the same command resumes
     ok(&refs(&tiny_training(&s1, "2")));
+    // a run whose checkpoint is gone is not restarted over its weights
+    let weights = std::fs::read(s1.join("model.safetensors")).unwrap();
+    std::fs::remove_dir_all(s1.join("ckpt")).unwrap();
+    fails(&refs(&tiny_training(&s1, "3")), &["model.safetensors", "no checkpoint to resume from"]);
+    assert_eq!(std::fs::read(s1.join("model.safetensors")).unwrap(), weights);
+    // a generate run folder is no training run
+    fails(&refs(&tiny_training(&run, "1")), &["sgam generate` run folder", s(&run)]);
+    assert!(!run.join("ckpt").exists());
 
     // synth: other render options than the folder's scenes; an empty transforms.json is not a
     // finished scene; one scene needs no --split
