@@ -58,7 +58,10 @@ pub const LOCK_FILE: &str = ".sgam-lock";
 /// the process ends, however it ends, so a stale file never blocks.
 #[derive(Debug)]
 pub struct RunLock {
-    _file: File,
+    file: File,
+    path: PathBuf,
+    /// The folder, when this lock created it (removed again if the run left it empty).
+    created: Option<PathBuf>,
 }
 
 impl RunLock {
@@ -68,8 +71,21 @@ impl RunLock {
         if dir.exists() && !dir.is_dir() {
             bail!("{}: not a folder (a run needs a folder)", dir.display());
         }
+        let created = (!dir.exists()).then(|| dir.to_path_buf());
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create the run folder", dir.display()))?;
         let path = dir.join(LOCK_FILE);
+        loop {
+            let lock = Self::try_acquire(dir, &path)?;
+            // a holder that finished between our open and our lock removed the file we locked:
+            // lock the path's file again
+            if same_file(&lock, &path) {
+                return Ok(Self { file: lock, path, created });
+            }
+        }
+    }
+
+    fn try_acquire(dir: &Path, path: &Path) -> Result<File> {
+        let path = path.to_path_buf();
         let mut file = OpenOptions::new()
             .read(true)
             .write(true)
@@ -94,7 +110,29 @@ impl RunLock {
         }
         let command: Vec<String> = std::env::args().collect();
         file.set_len(0).and_then(|_| write!(file, "pid {}: {}", std::process::id(), command.join(" "))).ok();
-        Ok(Self { _file: file })
+        Ok(file)
+    }
+}
+
+/// Whether `file` is the file now at `path` (same device and inode).
+fn same_file(file: &File, path: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    match (file.metadata(), std::fs::metadata(path)) {
+        (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+        _ => false,
+    }
+}
+
+impl Drop for RunLock {
+    /// A finished (or failed) run leaves no lock file, and a folder this lock created that the
+    /// run left empty is removed: a run that failed before writing anything leaves nothing.
+    fn drop(&mut self) {
+        // removed while still locked, so a waiting process re-checks and locks a fresh file
+        let _ = std::fs::remove_file(&self.path);
+        let _ = self.file.unlock();
+        if let Some(dir) = &self.created {
+            let _ = std::fs::remove_dir(dir); // only succeeds when empty
+        }
     }
 }
 

@@ -104,7 +104,7 @@ impl LiveView {
                 b.store(false, Ordering::SeqCst);
             }
         })?;
-        eprintln!("live view: {}  (the page follows the run; Ctrl-C ends both)", server.url());
+        eprintln!("live view: {}  (the page follows the run and stops with it; afterwards open world.html, or serve it with `sgam view RUN --serve`)", server.url());
         crate::view::open_in_browser(&server.url());
         Ok(Self {
             inner: Some(Live {

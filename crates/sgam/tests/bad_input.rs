@@ -150,6 +150,8 @@ fn corrupt_files_per_format_are_clean_errors_naming_the_file() {
     };
     fails(&refs(&seed(&junk_png, &junk_npy)), &["junk.png"]);
     fails(&refs(&seed(&good_png, &junk_npy)), &["depth.npy"]);
+    // a run that failed before writing anything leaves no folder behind
+    assert!(!out.exists(), "{} was left behind", out.display());
     fails(&refs(&seed(&good_png, &junk_png)), &["junk.png"]);
     // PLY: garbage, a non-finite vertex
     let ok_ply = t.join("ok.ply");
@@ -602,6 +604,8 @@ fn resume_mismatches_and_earlier_outputs_are_refused() {
     // no stale frame of the old run is left beside the new transforms.json
     let run = t.join("w");
     ok(&refs(&world(&run, "6")));
+    // a finished run leaves no lock file
+    assert!(!run.join(".sgam-lock").exists());
     std::fs::remove_file(run.join("snapshot.bin")).unwrap();
     fails(&refs(&world(&run, "2")), &["already holds files", "--force", s(&run)]);
     assert_eq!(rgb_count(&run), 7);
