@@ -104,13 +104,13 @@ fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> 
     let log = Arc::new(Mutex::new(Vec::new()));
     let oracle = RecordingOracle { renderer: renderer.clone(), log: log.clone() };
     let keyframes = Keyframes::new(dir.path(), config.source_radius_m, 16);
-    let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, oracle, config);
+    let mut generator = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, oracle, config);
     let seed_frame = renderer.render(&seed_camera, &RenderConfig::default()).frame;
-    gen.seed(&seed_camera, seed_frame)?;
+    generator.seed(&seed_camera, seed_frame)?;
     for pose in poses.iter().skip(1) {
-        gen.step(&Camera::new(seed_camera.intrinsics, *pose))?;
+        generator.step(&Camera::new(seed_camera.intrinsics, *pose))?;
     }
-    drop(gen);
+    drop(generator);
     // the oracle never panics while holding the lock; a poisoned lock still holds whole records
     let recorded = std::mem::take(&mut *log.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
     Ok(recorded)

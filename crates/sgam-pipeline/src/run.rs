@@ -91,38 +91,38 @@ pub fn generate(
         }
         None => (TsdfMap::new(gconfig.tsdf), Vec::new()),
     };
-    let mut gen = WorldGenerator::new(map, keyframes, refiner, gconfig);
-    let snapshot = |gen: &RunGenerator, timings: &[StepTimings]| {
+    let mut generator = WorldGenerator::new(map, keyframes, refiner, gconfig);
+    let snapshot = |generator: &RunGenerator, timings: &[StepTimings]| {
         let state = SnapshotState {
             config: config.clone(),
-            cameras: gen.keyframes.cameras().to_vec(),
+            cameras: generator.keyframes.cameras().to_vec(),
             timings: timings.to_vec(),
             model_crc32,
         };
-        write_snapshot(dir, &state, &gen.map)
+        write_snapshot(dir, &state, &generator.map)
     };
     if !resumed {
-        gen.seed(&seed.camera, seed.frame.clone())?;
-        observer.after_seed(&mut gen)?;
+        generator.seed(&seed.camera, seed.frame.clone())?;
+        observer.after_seed(&mut generator)?;
         // a snapshot from the start: a run killed before its first snapshot interval is resumable
-        snapshot(&gen, &timings)?;
+        snapshot(&generator, &timings)?;
     }
-    let done = gen.keyframes.len();
-    let mut poses = config.trajectory.pose_source(&seed.camera, config.steps, gen.keyframes.cameras())?;
+    let done = generator.keyframes.len();
+    let mut poses = config.trajectory.pose_source(&seed.camera, config.steps, generator.keyframes.cameras())?;
     observer.started(resumed, total, done, &seed)?;
     let start = Instant::now();
     let mut this_run = 0usize;
     let mut finished = false;
     for i in done..total {
-        let Some(camera) = poses.next_camera(&mut gen.map) else { break };
-        let t = gen.step(&camera).map_err(|e| PipelineError::Step { index: i, source: Box::new(e) })?;
+        let Some(camera) = poses.next_camera(&mut generator.map) else { break };
+        let t = generator.step(&camera).map_err(|e| PipelineError::Step { index: i, source: Box::new(e) })?;
         timings.push(t);
         this_run += 1;
-        observer.after_step(i, total, &mut gen, &t)?;
+        observer.after_step(i, total, &mut generator, &t)?;
         finished = i + 1 == total;
         let stopping = stop_after.is_some_and(|n| this_run >= n);
         if finished || stopping || i % config.outputs.snapshot_every == 0 {
-            snapshot(&gen, &timings)?;
+            snapshot(&generator, &timings)?;
         }
         if stopping && !finished {
             break;
@@ -131,7 +131,7 @@ pub fn generate(
     // a greedy walk that ran out of cells ends the run too
     let stopped_early = stop_after.is_some_and(|n| this_run >= n) && !finished;
     Ok(Generated {
-        generator: gen,
+        generator,
         timings,
         finished: !stopped_early,
         steps_this_run: this_run,

@@ -238,17 +238,17 @@ fn carving_keeps_invented_surfaces_out_of_the_space_the_seed_saw_empty() {
         let tmp = tempfile::tempdir().unwrap();
         let config = sgam_pipeline::GeneratorConfig { carve_free_space: carve, ..clevr_generator_config(0) };
         let keyframes = sgam_pipeline::Keyframes::new(tmp.path(), config.source_radius_m, 4);
-        let mut gen = sgam_pipeline::WorldGenerator::new(
+        let mut generator = sgam_pipeline::WorldGenerator::new(
             sgam_map::TsdfMap::new(config.tsdf),
             keyframes,
             NearWall { depth_m: 3.0 },
             config,
         );
-        gen.seed(&seed_cam, seed.clone()).unwrap();
-        gen.step(&seed_cam).unwrap();
+        generator.seed(&seed_cam, seed.clone()).unwrap();
+        generator.step(&seed_cam).unwrap();
         // the map's nearest vertex in the seed's view
         let from_world = seed_cam.world_from_camera.inverse();
-        let mesh = gen.map.extract_mesh();
+        let mesh = generator.map.extract_mesh();
         mesh.positions
             .iter()
             .filter_map(|p| seed_cam.project_world(&from_world, *p))

@@ -189,16 +189,16 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
     // flying pixels)
     let config = sgam_pipeline::RunConfig::clevr(1).generator_config();
     let keyframes = sgam_pipeline::Keyframes::new(dir.path(), 1.0, 96);
-    let mut gen = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
+    let mut generator = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, refiner, config);
     let (seed_cam, seed_frame) = &seq[0];
-    gen.seed(seed_cam, seed_frame.clone())?;
+    generator.seed(seed_cam, seed_frame.clone())?;
     let side = ((args.iterations + 4) as f32).sqrt().ceil() as usize + 1;
     let cells = trajectory::zigzag_cells(side, side);
     let poses = trajectory::grid_poses(&seed_cam.world_from_camera, &cells, 0.408);
     let warm = 3;
     let mut all = Vec::new();
     for p in poses.iter().skip(1).take(warm + args.iterations) {
-        all.push(gen.step(&Camera::new(seed_cam.intrinsics, *p))?);
+        all.push(generator.step(&Camera::new(seed_cam.intrinsics, *p))?);
     }
     let timed = &all[warm..];
     let med = |f: fn(&sgam_pipeline::StepTimings) -> f64| {
@@ -208,7 +208,7 @@ fn bench_step(args: &BenchArgs) -> Result<()> {
     let split = json!({
         "sources_ms": med(|t| t.sources_ms), "render_ms": med(|t| t.render_ms), "warp_ms": med(|t| t.warp_ms),
         "refine_ms": med(|t| t.refine_ms), "integrate_ms": med(|t| t.integrate_ms), "mesh_ms": med(|t| t.mesh_ms),
-        "write_ms": med(|t| t.write_ms), "blocks": gen.map.block_count(),
+        "write_ms": med(|t| t.write_ms), "blocks": generator.map.block_count(),
     });
     print_line(args, "step", &ms, split);
     Ok(())

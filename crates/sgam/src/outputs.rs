@@ -56,9 +56,9 @@ fn output_error(e: anyhow::Error) -> sgam_pipeline::PipelineError {
 }
 
 impl RunObserver for CliObserver<'_> {
-    fn after_seed(&mut self, gen: &mut RunGenerator) -> ObserverResult {
+    fn after_seed(&mut self, generator: &mut RunGenerator) -> ObserverResult {
         if self.config.outputs.depth_png {
-            write_depth_png(self.dir, 0, &gen.keyframes.frame(0)?.depth_m).map_err(output_error)?;
+            write_depth_png(self.dir, 0, &generator.keyframes.frame(0)?.depth_m).map_err(output_error)?;
         }
         Ok(())
     }
@@ -82,9 +82,9 @@ impl RunObserver for CliObserver<'_> {
         Ok(())
     }
 
-    fn after_step(&mut self, i: usize, total: usize, gen: &mut RunGenerator, t: &StepTimings) -> ObserverResult {
+    fn after_step(&mut self, i: usize, total: usize, generator: &mut RunGenerator, t: &StepTimings) -> ObserverResult {
         if let Some(live) = &mut self.live {
-            live.after_step(i, total, &mut gen.map, gen.keyframes.cameras());
+            live.after_step(i, total, &mut generator.map, generator.keyframes.cameras());
         }
         if let Some(pb) = &self.pb {
             pb.inc(1);
@@ -92,10 +92,10 @@ impl RunObserver for CliObserver<'_> {
         }
         let outputs = &self.config.outputs;
         if outputs.depth_png {
-            write_depth_png(self.dir, i, &gen.keyframes.frame(i)?.depth_m).map_err(output_error)?;
+            write_depth_png(self.dir, i, &generator.keyframes.frame(i)?.depth_m).map_err(output_error)?;
         }
         if outputs.mesh_every > 0 && i.is_multiple_of(outputs.mesh_every) {
-            sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &gen.map.extract_mesh())?;
+            sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &generator.map.extract_mesh())?;
         }
         Ok(())
     }
@@ -131,13 +131,13 @@ fn write_depth_png(dir: &Path, index: usize, depth_m: &sgam_core::Image<f32>) ->
 /// Writes the end-of-run outputs: mesh (PLY + GLB), map, transforms.json, fly-through, overview,
 /// run.json and world.html.
 pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Result<()> {
-    let (gen, timings, wall_s) = (&mut run.generator, &run.timings, run.wall_s);
+    let (generator, timings, wall_s) = (&mut run.generator, &run.timings, run.wall_s);
     let outputs = &config.outputs;
-    let mesh = gen.map.extract_mesh();
+    let mesh = generator.map.extract_mesh();
     sgam_io::write_mesh(&dir.join("mesh.ply"), &mesh)?;
     sgam_io::write_mesh(&dir.join("mesh.glb"), &mesh)?;
-    sgam_pipeline::save_map(&dir.join("map.bin"), &gen.map)?;
-    let cams = gen.keyframes.cameras();
+    sgam_pipeline::save_map(&dir.join("map.bin"), &generator.map)?;
+    let cams = generator.keyframes.cameras();
     let frames = (0..cams.len())
         .map(|i| {
             let (rgb, depth) = frame_file_names(i);
@@ -159,10 +159,10 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
         crate::video::write_flythrough_mp4(dir, cams.len())?;
     }
     if outputs.orbit_video {
-        crate::video::write_orbit_mp4(&dir.join("orbit.mp4"), &gen.map, &mesh, crate::view::up_world(&cams[0]))?;
+        crate::video::write_orbit_mp4(&dir.join("orbit.mp4"), &generator.map, &mesh, crate::view::up_world(&cams[0]))?;
     }
     if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams[0], 1280, 800) {
-        let img = crate::overview::render_overview(&gen.map, &cam, near, far);
+        let img = crate::overview::render_overview(&generator.map, &cam, near, far);
         sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
     }
     sgam_io::write_rgb_png(&dir.join("strip.png"), &crate::overview::frame_strip(dir, cams.len(), 6)?)?;
@@ -179,7 +179,7 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
             "mesh": col(|t| t.mesh_ms), "write": col(|t| t.write_ms),
         },
         "median_missing_fraction": median(&timings.iter().map(|t| t.missing_fraction as f64).collect::<Vec<_>>()),
-        "map": { "blocks": gen.map.block_count(), "bytes": gen.map.memory_bytes(),
+        "map": { "blocks": generator.map.block_count(), "bytes": generator.map.memory_bytes(),
                  "vertices": mesh.positions.len(), "triangles": mesh.triangles.len() },
         "step_ms": timings.iter().map(|t| (t.total_ms * 1000.0).round() / 1000.0).collect::<Vec<_>>(),
     });

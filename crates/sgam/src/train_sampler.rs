@@ -157,7 +157,7 @@ pub(crate) fn recorded_pairs(
     resuming: bool,
 ) -> Result<Vec<sgam_model::generative::CodePair>> {
     let key = sgam_pipeline::codepairs::CacheKey {
-        version: 2, // 2: pairs from all six trajectory shapes (session 14)
+        version: 2, // 2: pairs from all six trajectory shapes
         pairs: n,
         steps_per_run: spec.steps_per_run,
         crop: spec.crop,
