@@ -128,11 +128,16 @@ fn claim_output(out: &Path, options: &RenderOptions) -> Result<()> {
 }
 
 /// True when `dir` holds a finished scene: a `transforms.json` that reads, with every camera of
-/// the grid and the asked depth type (an empty or cut file is not finished).
+/// the grid and the asked depth type (an empty or cut file is not finished), and every frame's
+/// colour and depth files (a deleted frame is rendered again).
 fn scene_finished(dir: &Path, args: &SynthArgs) -> bool {
     let want = if args.planar_depth { DepthType::Planar } else { DepthType::RayLength };
     sgam_io::read_clevr_transforms(&dir.join("transforms.json"))
         .is_ok_and(|t| t.frames.len() == args.grid * args.grid && t.effective_depth_type() == want)
+        && dataset_cameras(args.grid, args.res).iter().all(|c| {
+            let i = c.index as u32;
+            sgam_io::clevr_colour_path(dir, i).exists() && sgam_io::clevr_depth_path(dir, i).exists()
+        })
 }
 
 fn parse_split(split: &str, scenes: usize) -> Result<(usize, usize)> {

@@ -672,6 +672,12 @@ fn resume_mismatches_and_earlier_outputs_are_refused() {
     assert_eq!(sgam_io::read_clevr_transforms(&scene.join("transforms.json")).unwrap().frames.len(), 4);
     let log = ok(&synth("16"));
     assert!(log.contains("1 already finished"), "{log}");
+    // a deleted frame makes the scene unfinished: that frame is rendered again
+    let frame = sgam_io::clevr_colour_path(&scene, 2);
+    std::fs::remove_file(&frame).unwrap();
+    let log = ok(&synth("16"));
+    assert!(log.contains("1 scenes rendered"), "a scene with a deleted frame counted as finished: {log}");
+    assert!(frame.exists());
     let legacy = t.join("legacy-ds");
     std::fs::create_dir_all(legacy.join("train/scene_000000")).unwrap();
     fails(&["synth", "--out", s(&legacy), "--scenes", "1", "--res", "16", "--grid", "1"], &["synth.json"]);
