@@ -135,6 +135,15 @@ pub fn glb_counts(path: &Path, glb: &[u8]) -> Result<(u64, u64)> {
     if glb.len() < 20 || &glb[0..4] != b"glTF" || &glb[16..20] != b"JSON" {
         return Err(bad());
     }
+    // the header's total length: a cut file (an interrupted copy) is refused, not embedded
+    let total = u32::from_le_bytes([glb[8], glb[9], glb[10], glb[11]]) as usize;
+    if total != glb.len() {
+        bail!(
+            "{}: a GLB of {} bytes whose header says {total}: the file is cut or damaged (an interrupted copy?)",
+            path.display(),
+            glb.len()
+        );
+    }
     let len = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
     let json: serde_json::Value = serde_json::from_slice(glb.get(20..20 + len).ok_or_else(bad)?)?;
     let (mut vertices, mut triangles) = (0, 0);
@@ -340,6 +349,22 @@ impl LiveState {
 mod tests {
     use super::*;
     use sgam_core::{Intrinsics, Rigid3};
+
+    #[test]
+    fn a_cut_glb_is_refused_and_a_whole_one_counted() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mesh.glb");
+        let mesh = sgam_core::TriMesh {
+            positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y, Vec3::Z],
+            colours: Vec::new(),
+            triangles: vec![[0, 1, 2], [0, 2, 3]],
+        };
+        sgam_io::write_glb(&path, &mesh).unwrap();
+        let glb = std::fs::read(&path).unwrap();
+        assert_eq!(glb_counts(&path, &glb).unwrap(), (4, 2));
+        let err = glb_counts(&path, &glb[..glb.len() - 8]).unwrap_err().to_string();
+        assert!(err.contains("mesh.glb") && err.contains("cut or damaged"), "{err}");
+    }
 
     #[test]
     fn base64_matches_rfc_4648_vectors() {
