@@ -50,6 +50,25 @@ pub fn refuse_unresumable_run(run: &Path, outputs: &[&str]) -> Result<()> {
     Ok(())
 }
 
+/// Opens a run's JSON-lines log `name` for appending, first dropping the lines of steps after
+/// `step` (what a run killed after its last checkpoint logged, which a resume from that
+/// checkpoint does again): each step is logged once. A line's step is its `step` or
+/// `report.step`; lines without one are kept.
+pub fn open_step_log(run: &Path, name: &str, step: u64) -> Result<File> {
+    let path = run.join(name);
+    if let Ok(text) = std::fs::read_to_string(&path) {
+        let step_of = |line: &str| {
+            let v: serde_json::Value = serde_json::from_str(line).ok()?;
+            v["step"].as_u64().or_else(|| v["report"]["step"].as_u64())
+        };
+        let kept: Vec<&str> = text.lines().filter(|l| step_of(l).is_none_or(|s| s <= step)).collect();
+        if kept.len() != text.lines().count() {
+            sgam_io::write_atomic(&path, |w| kept.iter().try_for_each(|l| writeln!(w, "{l}")))?;
+        }
+    }
+    OpenOptions::new().create(true).append(true).open(&path).with_context(|| format!("{}: cannot open", path.display()))
+}
+
 /// Name of the lock file inside a run folder.
 pub const LOCK_FILE: &str = ".sgam-lock";
 

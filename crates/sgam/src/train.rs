@@ -294,7 +294,8 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     }
     let _lock = RunLock::acquire(&args.run)?;
     crate::guard::remove_stale_temp_files(&args.run, &["ckpt", "ckpt.old", "val"])?;
-    let resuming = sgam_model::train::read_checkpoint(&args.run)?.is_some();
+    let resumed_step = sgam_model::train::read_checkpoint(&args.run)?.map(|(_, state)| state.step);
+    let resuming = resumed_step.is_some();
     if !resuming {
         crate::guard::refuse_unresumable_run(&args.run, &["model.safetensors"])?;
     }
@@ -326,11 +327,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     // without a terminal (background runs) print a plain line every 50 steps instead of a bar
     let quiet_bar = std::io::IsTerminal::is_terminal(&std::io::stderr());
     // the loss log is append-only (one JSON object per line), written as training goes
-    let mut log = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(args.run.join("log.jsonl"))
-        .with_context(|| format!("{}: cannot open log.jsonl", args.run.display()))?;
+    let mut log = crate::guard::open_step_log(&args.run, "log.jsonl", resumed_step.unwrap_or(0))?;
     let mut on_step = |p: &sgam_model::TrainProgress| {
         let r = &p.report;
         pb.set_position(r.step);

@@ -299,14 +299,10 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         val_pairs.len(),
         started.elapsed().as_secs_f64()
     );
-    let open_log = |name: &str| {
-        std::fs::OpenOptions::new()
-            .create(true)
-            .append(true)
-            .open(a.run.join(name))
-            .with_context(|| format!("{}: cannot open {name}", a.run.display()))
-    };
-    let (mut log, mut val_log) = (open_log("log.jsonl")?, open_log("val.jsonl")?);
+    let (mut log, mut val_log) = (
+        crate::guard::open_step_log(&a.run, "log.jsonl", trainer.step)?,
+        crate::guard::open_step_log(&a.run, "val.jsonl", trainer.step)?,
+    );
     let steps = trainer.train_config.steps;
     let pb = progress::bar(steps, "training");
     pb.set_position(trainer.step);

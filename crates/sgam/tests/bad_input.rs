@@ -642,8 +642,18 @@ fn resume_mismatches_and_earlier_outputs_are_refused() {
     let mut a = tiny_training(&s1, "2");
     a[1] = "stage2".into();
     fails(&refs(&a), &["stage-1 run", "--init"]);
-    // the same command resumes
+    // the same command resumes; steps a killed run logged after its checkpoint are logged once
+    let log = s1.join("log.jsonl");
+    let mut text = std::fs::read_to_string(&log).unwrap();
+    text.push_str("{\"step\": 2, \"total\": 1.0}\n");
+    std::fs::write(&log, text).unwrap();
     ok(&refs(&tiny_training(&s1, "2")));
+    let steps: Vec<u64> = std::fs::read_to_string(&log)
+        .unwrap()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()?["step"].as_u64())
+        .collect();
+    assert_eq!(steps, vec![1, 2], "log.jsonl steps");
     // a run whose checkpoint is gone is not restarted over its weights
     let weights = std::fs::read(s1.join("model.safetensors")).unwrap();
     std::fs::remove_dir_all(s1.join("ckpt")).unwrap();
