@@ -101,6 +101,10 @@ fn f(v: &serde_json::Value, digits: usize) -> String {
 /// Runs `sgam eval table`.
 pub fn run(a: &TableArgs) -> Result<()> {
     crate::eval_trajectories::check(&a.trajectories)?;
+    // every row's options and the model file, before minutes of work
+    for row in &ROWS {
+        world_args(a, row).validate()?;
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("{}: cannot create", a.out.display()))?;
     let mut lines = Vec::new();
     let mut json_rows = Vec::new();

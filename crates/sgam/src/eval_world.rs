@@ -176,7 +176,11 @@ impl WorldArgs {
         }
     }
 
-    fn validate(&self) -> Result<()> {
+    /// Checks every option and the model file before any world is grown.
+    pub fn validate(&self) -> Result<()> {
+        if let Some(m) = &self.refiner.model {
+            crate::guard::check_input_file("--model", m)?;
+        }
         let (seeds, steps) = self.seeds_steps();
         if seeds == 0 || seeds > 1000 {
             bail!("--seeds {seeds} must be in 1..=1000");

@@ -19,6 +19,18 @@ fn eval_table_refuses_unknown_repeated_and_file_trajectories_before_any_work() {
         assert!(err.contains(needle), "--trajectories {list:?}: {err}");
         assert!(!out.exists(), "--trajectories {list:?} started work in {}", out.display());
     }
+    // a missing model file, and too few steps, are named before any world is grown
+    let missing = dir.path().join("absent.safetensors");
+    for (extra, needle) in
+        [(vec!["--model", missing.to_str().unwrap()], "absent.safetensors"), (vec!["--steps", "3"], "--steps 3")]
+    {
+        let mut args = vec!["eval", "table", "--out", out.to_str().unwrap()];
+        args.extend(extra);
+        let o = common::sgam(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{args:?}: {err}");
+        assert!(!out.exists(), "{args:?} started work in {}", out.display());
+    }
 }
 
 #[test]
