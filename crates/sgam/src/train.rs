@@ -218,7 +218,7 @@ impl TrainArgs {
     /// Checks every option of stages 1 and 2 (finite, in range, the crop a multiple of
     /// `model`'s downsampling factor within the 256-pixel views); errors name the option and
     /// the accepted range.
-    pub fn validate(&self, model: &ModelConfig) -> Result<()> {
+    pub fn validate(&self, stage: Stage, model: &ModelConfig) -> Result<()> {
         in_range("--steps", self.steps, 1..=10_000_000)?;
         in_range("--batch", self.batch, 1..=sgam_model::train::MAX_BATCH)?;
         let f = model.downsample_factor() as u32;
@@ -239,6 +239,13 @@ impl TrainArgs {
             positive("--missing-weight", w, 1000.0)?;
         }
         in_range("--wide-holes", self.wide_holes, 0.0..=1.0)?;
+        // a stage's own options are refused on the other stage, which would ignore them
+        if stage == Stage::One && self.wide_holes > 0.0 {
+            bail!("--wide-holes shapes stage 2's guidance; stage 1 autoencodes clean frames and would ignore it");
+        }
+        if stage == Stage::Two && self.warmup_no_quant > 0 {
+            bail!("--warmup-no-quant is stage 1's (the codebook is frozen in stage 2, which would ignore it)");
+        }
         in_range("--scenes", self.scenes, 1..=HELD_OUT_SEED_BASE - 1)?;
         Ok(())
     }
@@ -288,7 +295,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         (None, Preset::Paper) => ModelConfig::paper(),
         (None, Preset::Tiny) => ModelConfig::tiny(),
     };
-    args.validate(&model_config)?;
+    args.validate(stage, &model_config)?;
     if let Some(init) = &args.init {
         crate::guard::check_input_file("--init", init)?;
     }

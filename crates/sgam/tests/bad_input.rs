@@ -486,6 +486,7 @@ fn bad_options_are_refused_before_work_naming_the_option() {
         (train(&["--perceptual-weight=-1"]), "--perceptual-weight -1"),
         (train(&["--missing-weight", "0"]), "--missing-weight 0"),
         (train(&["--wide-holes", "2"]), "--wide-holes 2"),
+        (train(&["--wide-holes", "0.5"]), "--wide-holes shapes stage 2's guidance"),
         (train(&["--batch", "0"]), "--batch 0"),
         (train(&["--lr-decay-from", "5"]), "--lr-decay-from 5"),
     ];
