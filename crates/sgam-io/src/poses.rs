@@ -166,6 +166,28 @@ pub fn intrinsics_from_k(path: &Path, k: &[f64], width: u32, height: u32) -> Res
     if k[1].abs() > 1e-9 || k[3].abs() > 1e-9 || k[6].abs() > 1e-9 || k[7].abs() > 1e-9 || (k[8] - 1.0).abs() > 1e-9 {
         return Err(IoError::invalid(path, format!("K = {k:?} is not of the form [[fx,0,cx],[0,fy,cy],[0,0,1]]")));
     }
+    let (w, h) = (f64::from(width), f64::from(height));
+    // a camera no real image has: the map's frustum would span thousands of voxels per pixel
+    for (name, f, side) in [("fx", k[0], w), ("fy", k[4], h)] {
+        if !(f >= 0.005 * side && f <= 500.0 * side) {
+            return Err(IoError::invalid(
+                path,
+                format!("{name} = {f} px for a {side} px image side (accepted {}..={} px)", 0.005 * side, 500.0 * side),
+            ));
+        }
+    }
+    for (name, c, side) in [("cx", k[2], w), ("cy", k[5], h)] {
+        if !(c >= -side && c <= 2.0 * side) {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "{name} = {c} px puts the principal point far off the {side} px image (accepted {}..={} px)",
+                    -side,
+                    2.0 * side
+                ),
+            ));
+        }
+    }
     Intrinsics::try_new(width, height, k[0] as f32, k[4] as f32, k[2] as f32, k[5] as f32)
         .map_err(|e| IoError::invalid(path, e.to_string()))
 }

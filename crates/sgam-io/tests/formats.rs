@@ -374,3 +374,16 @@ fn mesh_writers_reject_bad_indices() {
         assert!(!p.exists());
     }
 }
+
+#[test]
+fn intrinsics_far_from_any_real_camera_are_refused_naming_the_file() {
+    let p = std::path::Path::new("camera-intrinsics.txt");
+    let k = |fx: f64, cx: f64| [fx, 0.0, cx, 0.0, fx, 240.0, 0.0, 0.0, 1.0];
+    assert!(sgam_io::intrinsics_from_k(p, &k(585.0, 320.0), 640, 480).is_ok());
+    // slightly off the image is a cropped camera: accepted
+    assert!(sgam_io::intrinsics_from_k(p, &k(585.0, -100.0), 640, 480).is_ok());
+    let e = sgam_io::intrinsics_from_k(p, &k(585.0, 1e6), 640, 480).unwrap_err().to_string();
+    assert!(e.contains("camera-intrinsics.txt") && e.contains("cx"), "{e}");
+    let e = sgam_io::intrinsics_from_k(p, &k(1e-3, 320.0), 640, 480).unwrap_err().to_string();
+    assert!(e.contains("fx"), "{e}");
+}
