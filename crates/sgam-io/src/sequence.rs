@@ -203,6 +203,18 @@ impl Sequence {
         if numbered.is_empty() {
             return Err(IoError::EmptySequence { path: root, msg: "no frame-NNNNNN.depth.png".into() });
         }
+        // a frame with a pose but no depth image is an error, as a frame without a pose is (it
+        // used to drop out of the sequence without a word)
+        for name in &names {
+            if let Some(stem) = name.strip_suffix(".pose.txt").filter(|s| s.starts_with("frame-")) {
+                if !root.join(format!("{stem}.depth.png")).is_file() {
+                    return Err(missing(
+                        root.join(format!("{stem}.depth.png")),
+                        "missing depth image (its pose is there)",
+                    ));
+                }
+            }
+        }
         let candidates: Vec<PathBuf> = [Some(root.as_path()), root.parent(), Some(dir)]
             .into_iter()
             .flatten()

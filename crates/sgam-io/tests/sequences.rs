@@ -56,6 +56,11 @@ fn seven_scenes_layout_flat_and_in_seq_folder_with_parent_intrinsics() {
     let seq2 = Sequence::open(&dir.path().join("seq-01")).unwrap();
     assert_eq!(seq2.len(), 3);
     assert_eq!(seq2.camera(0).intrinsics.fx, 9.5);
+    // a frame whose depth image is gone is an error naming it, not a frame silently dropped
+    let gone = dir.path().join("seq-01").join("frame-000002.depth.png");
+    std::fs::remove_file(&gone).unwrap();
+    let err = Sequence::open(dir.path()).unwrap_err();
+    assert_names(&err, &gone);
 }
 
 /// Authors'-style CLEVR fixture: json without depth_type, Blender file paths, ray length in
