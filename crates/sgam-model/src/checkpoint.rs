@@ -59,9 +59,7 @@ pub fn read_trainer_state<S: serde::de::DeserializeOwned>(
         .map_err(|e| ModelError::checkpoint(&path, format!("not a {what} state: {e}")))?;
     let weights = dir.join("model.safetensors");
     let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
-    let tensors = crate::params::from_safetensors_bytes(&wbytes)
-        .map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?
-        .0;
+    let tensors = crate::params::from_safetensors_bytes(&wbytes).map_err(|e| e.in_file(&weights))?.0;
     Ok((state, tensors))
 }
 

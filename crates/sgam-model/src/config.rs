@@ -223,7 +223,7 @@ impl ModelConfig {
     /// and within memory: every size has an upper bound ([`MAX_CHANNELS`], [`MAX_CODEBOOK`],
     /// [`MAX_PARAMETERS`], ...). Errors name the field and the accepted range.
     pub fn validate(&self) -> Result<(), ModelError> {
-        let bad = |msg: String| Err(ModelError::Config(format!("{}: {msg}", self.name)));
+        let bad = |msg: String| Err(ModelError::config(&self.name, msg));
         if self.ch_mult.is_empty() || self.ch == 0 || self.patch_size == 0 {
             return bad("ch, ch_mult and patch_size must be non-zero".into());
         }

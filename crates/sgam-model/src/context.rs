@@ -57,7 +57,7 @@ impl Default for ContextConfig {
 impl ContextConfig {
     /// Checks the sizes (errors name the field).
     pub fn validate(&self) -> Result<(), ModelError> {
-        let bad = |what: String| Err(ModelError::Config(format!("context: {what}")));
+        let bad = |what: String| Err(ModelError::config("context", what));
         if self.dim == 0 || self.dim > 2048 {
             return bad(format!("dim {} must be in 1..=2048", self.dim));
         }

@@ -75,7 +75,11 @@ pub fn context_pairs(
         for ((w, h), group) in groups {
             let (w, h) = (w as usize, h as usize);
             if !w.is_multiple_of(f) || !h.is_multiple_of(f) {
-                return Err(ModelError::Input(format!("a {w}x{h} pair is not a multiple of {f} pixels")));
+                return Err(ModelError::shape(
+                    "a pair's size",
+                    format!("a multiple of {f} pixels"),
+                    format!("{w}x{h}"),
+                ));
             }
             let frames: Vec<&RgbdFrame> = group.iter().map(|p| &p.input).collect();
             let masks: Vec<Option<&[bool]>> = group.iter().map(|p| Some(p.missing.as_slice())).collect();
@@ -86,11 +90,11 @@ pub fn context_pairs(
             let host = to_host(feats.permute([0, 2, 3, 1]))?;
             for (i, p) in group.iter().enumerate() {
                 if p.codes.len() != zh * zw {
-                    return Err(ModelError::Input(format!(
-                        "a {w}x{h} pair needs {} target codes, has {}",
-                        zh * zw,
-                        p.codes.len()
-                    )));
+                    return Err(ModelError::shape(
+                        "a pair's target codes",
+                        format!("{} for {w}x{h} pixels", zh * zw),
+                        p.codes.len(),
+                    ));
                 }
                 let missing = missing_cells(&p.missing, w, h, f, missing_cell_threshold);
                 if missing.iter().any(|m| *m) {
@@ -251,7 +255,7 @@ impl ContextTrainer {
         train_config: &ContextTrainConfig,
     ) -> Result<Self, ModelError> {
         if model_config.context.is_none() || !model_config.code_head {
-            return Err(ModelError::Config("context training needs a model with a code head and a context".into()));
+            return Err(ModelError::MissingPart { part: "a code head and a context", operation: "context training" });
         }
         let device = crate::default_device();
         let fresh = VqModel::new(model_config, train_config.seed, &device)?;
@@ -261,21 +265,20 @@ impl ContextTrainer {
             if let Some(name) =
                 named_tensors(&fresh).keys().find(|k| !k.starts_with("context.") && !init.contains_key(*k))
             {
-                return Err(ModelError::Weights(format!("missing parameter {name}")));
+                return Err(ModelError::MissingTensor(name.clone()));
             }
         }
         let model = load_named(fresh, init, !has_context, false)?;
         let base: BTreeMap<String, NamedTensor> =
             named_tensors(&model).into_iter().filter(|(k, _)| !k.starts_with("context.")).collect();
         let get = |name: &str| {
-            base.get(name)
-                .map(|t| t.values.clone())
-                .ok_or_else(|| ModelError::Weights(format!("missing parameter {name}")))
+            base.get(name).map(|t| t.values.clone()).ok_or_else(|| ModelError::MissingTensor(name.to_string()))
         };
         let (head_weight, head_bias, codebook) =
             (get("code_head.weight")?, get("code_head.bias")?, get("quantize.embedding.weight")?);
         let spacing = codebook_spacing(&model)?;
-        let context = model.context.ok_or_else(|| ModelError::Config("the model has no context".into()))?.train();
+        let context =
+            model.context.ok_or(ModelError::MissingPart { part: "a context", operation: "context training" })?.train();
         Ok(Self {
             model_config: model_config.clone(),
             train_config: train_config.clone(),
@@ -307,12 +310,20 @@ impl ContextTrainer {
         let (k, z, e) = (self.model_config.n_embed, self.model_config.z_channels, self.model_config.embed_dim);
         let [h, w] = batch[0].shape;
         if batch.iter().any(|p| p.shape != [h, w]) {
-            return Err(ModelError::Input("pairs of one batch must share a size".into()));
+            return Err(ModelError::shape(
+                "the pairs of one batch",
+                format!("{h}x{w} cells each"),
+                "pairs of several sizes",
+            ));
         }
         let n = batch.len() * h * w;
         let feats: Vec<f32> = batch.iter().flat_map(|p| p.features.iter().copied()).collect();
         if feats.len() != n * z {
-            return Err(ModelError::Input(format!("features of {} values for {n} cells of {z} channels", feats.len())));
+            return Err(ModelError::shape(
+                "the batch's features",
+                format!("{n} cells x {z} channels"),
+                format!("{} values", feats.len()),
+            ));
         }
         let feats = self.constant(&feats, [n, z], dev);
         let all_states: Vec<CellState> = states.iter().flatten().copied().collect();
@@ -364,7 +375,7 @@ impl ContextTrainer {
     /// One optimisation step on `batch` (pairs of one size).
     pub fn step_on(&mut self, batch: &[&ContextPair]) -> Result<ContextReport, ModelError> {
         if batch.is_empty() {
-            return Err(ModelError::Input("empty batch".into()));
+            return Err(ModelError::EmptyBatch("context training step"));
         }
         let whole = self.train_config.whole_hole;
         let states: Vec<Vec<CellState>> = batch.iter().map(|p| draw_states(p, whole, &mut self.rng)).collect();
@@ -381,7 +392,7 @@ impl ContextTrainer {
         };
         let loss_value = to_host(loss.clone().detach())?.first().copied().unwrap_or(f32::NAN);
         if !loss_value.is_finite() {
-            return Err(ModelError::Input(format!("the loss became {loss_value} at step {}", self.step + 1)));
+            return Err(ModelError::Diverged { loss: loss_value, step: self.step + 1 });
         }
         let mut grads = loss.backward();
         let g = GradientsParams::from_module(&mut grads, &self.context);

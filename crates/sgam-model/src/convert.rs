@@ -19,10 +19,12 @@ use crate::ModelError;
 pub fn read_lightning_state_dict(ckpt: &Path) -> Result<BTreeMap<String, NamedTensor>, ModelError> {
     let reader = PytorchReader::with_top_level_key(ckpt, "state_dict")
         .or_else(|_| PytorchReader::new(ckpt))
-        .map_err(|e| ModelError::Weights(format!("reading {}: {e}", ckpt.display())))?;
+        .map_err(|e| ModelError::Format { what: "a PyTorch checkpoint", msg: e.to_string() }.in_file(ckpt))?;
     let mut out = BTreeMap::new();
     for (name, t) in reader.tensors() {
-        let bytes = t.read().map_err(|e| ModelError::Weights(format!("{}: tensor {name}: {e}", ckpt.display())))?;
+        let bytes = t.read().map_err(|e| {
+            ModelError::Format { what: "a checkpoint tensor", msg: format!("{name}: {e}") }.in_file(ckpt)
+        })?;
         let values: Vec<f32> = match t.dtype() {
             DType::F32 => bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
             DType::F64 => bytes
@@ -63,10 +65,7 @@ pub fn convert_lightning_checkpoint(
     };
     let device = crate::default_device();
     let model = VqModel::new(&config, 0, &device)?;
-    let model = load_named(model, &tensors, false, true).map_err(|e| match e {
-        ModelError::Weights(m) => ModelError::Weights(format!("{}: {m}", ckpt.display())),
-        other => other,
-    })?;
+    let model = load_named(model, &tensors, false, true).map_err(|e| e.in_file(ckpt))?;
     crate::refiner::save_model(&model, &config, out, WeightPrecision::F32)?;
     Ok(config)
 }

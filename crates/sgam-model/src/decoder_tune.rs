@@ -131,9 +131,12 @@ impl DecoderTuner {
         let (a, b) =
             (to_host(model.quantize.embedding.weight.val())?, to_host(encoder.quantize.embedding.weight.val())?);
         if a.len() != b.len() || a.iter().zip(&b).any(|(x, y)| (x - y).abs() > 1e-3 * y.abs().max(1.0)) {
-            return Err(ModelError::Weights(
-                "the encoder's codebook differs from the tuned model's: its codes would decode to other pixels".into(),
-            ));
+            return Err(ModelError::WeightsMismatch {
+                problems: vec![
+                    "the encoder's codebook differs from the tuned model's: its codes would decode to other pixels"
+                        .into(),
+                ],
+            });
         }
         Ok(Self {
             model_config: model_config.clone(),
@@ -155,7 +158,11 @@ impl DecoderTuner {
         let f = self.model_config.downsample_factor();
         let (w, h) = (frames[0].width() as usize, frames[0].height() as usize);
         if w % f != 0 || h % f != 0 || frames.iter().any(|x| x.width() as usize != w || x.height() as usize != h) {
-            return Err(ModelError::Input(format!("frames must share one size, a multiple of {f} pixels")));
+            return Err(ModelError::shape(
+                "the frames of one batch",
+                format!("one size, a multiple of {f} pixels"),
+                format!("{w}x{h} first"),
+            ));
         }
         Ok([frames.len(), h / f, w / f])
     }
@@ -205,14 +212,14 @@ impl DecoderTuner {
     /// One optimisation step on whole clean frames (all the same size).
     pub fn step_on(&mut self, frames: &[&RgbdFrame], intrinsics: &[Intrinsics]) -> Result<DecoderReport, ModelError> {
         if frames.is_empty() {
-            return Err(ModelError::Input("empty batch".into()));
+            return Err(ModelError::EmptyBatch("decoder tuning step"));
         }
         let codes = self.codes(frames, intrinsics)?;
         let dev = self.device.clone().autodiff();
         let (loss, l1c, l1d, out) = self.losses(&self.model, frames, &codes, &dev)?;
         let value = to_host(loss.clone().detach())?[0];
         if !value.is_finite() {
-            return Err(ModelError::Input(format!("the loss became {value} at step {}", self.step + 1)));
+            return Err(ModelError::Diverged { loss: value, step: self.step + 1 });
         }
         let mut grads = loss.backward();
         let g = GradientsParams::from_module(&mut grads, &self.model);

@@ -35,18 +35,17 @@ impl FeatureExtractor {
     pub fn features(&self, frame: &sgam_core::RgbdFrame) -> Result<Vec<f32>, ModelError> {
         let f = self.config.downsample_factor();
         if !(frame.width() as usize).is_multiple_of(f) || !(frame.height() as usize).is_multiple_of(f) {
-            return Err(ModelError::Input(format!(
-                "frame of {}x{} is not a multiple of {f}",
-                frame.width(),
-                frame.height()
-            )));
+            return Err(ModelError::shape(
+                "a feature frame's size",
+                format!("a multiple of {f} pixels"),
+                format!("{}x{}", frame.width(), frame.height()),
+            ));
         }
         let k = sgam_core::Intrinsics::from_fov_x(frame.width(), frame.height(), 1.0);
         let x = packing::pack_input(&[frame], &[None], &[k], &self.config, &self.device)?;
         let z = self.model.encode(x);
         let [_, d, h, w] = z.dims();
-        let v =
-            z.into_data().try_to_vec_as::<f32>().map_err(|e| ModelError::Input(format!("reading features: {e:?}")))?;
+        let v = z.into_data().try_to_vec_as::<f32>().map_err(|e| ModelError::TensorRead(format!("{e:?}")))?;
         let n = (h * w) as f32;
         let mut out = Vec::with_capacity(2 * d);
         for c in 0..d {

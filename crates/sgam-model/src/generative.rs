@@ -292,7 +292,7 @@ pub fn codebook_spacing(model: &VqModel) -> Result<f32, ModelError> {
         .filter(|v| v.is_finite())
         .collect();
     if nn.is_empty() {
-        return Err(ModelError::Weights("the codebook has fewer than two codes".into()));
+        return Err(ModelError::WeightsMismatch { problems: vec!["the codebook has fewer than two codes".into()] });
     }
     let mid = nn.len() / 2;
     nn.select_nth_unstable_by(mid, f32::total_cmp);
@@ -390,14 +390,14 @@ pub fn head_from_codebook(
     tensors: &mut std::collections::BTreeMap<String, NamedTensor>,
     tau: f32,
 ) -> Result<(), ModelError> {
-    let get = |name: &str| {
-        tensors.get(name).cloned().ok_or_else(|| ModelError::Weights(format!("no {name} to build the code head from")))
-    };
+    let get = |name: &str| tensors.get(name).cloned().ok_or_else(|| ModelError::MissingTensor(name.to_string()));
     let (e, q, qb) = (get("quantize.embedding.weight")?, get("quant_conv.weight")?, get("quant_conv.bias")?);
     let (k, d) = (e.shape[0], e.shape[1]);
     let z = q.shape.get(1).copied().unwrap_or(0);
     if q.shape[0] != d || qb.values.len() != d || q.values.len() != d * z {
-        return Err(ModelError::Weights(format!("quant_conv {:?} does not match the codebook {:?}", q.shape, e.shape)));
+        return Err(ModelError::WeightsMismatch {
+            problems: vec![format!("quant_conv {:?} does not match the codebook {:?}", q.shape, e.shape)],
+        });
     }
     let mut w = vec![0.0f32; k * z];
     let mut b = vec![0.0f32; k];
@@ -484,17 +484,14 @@ impl CodeTrainer {
         for p in batch {
             let (w, h) = (p.input.width() as usize, p.input.height() as usize);
             if p.codes.len() != (w / f) * (h / f) || w % f != 0 || h % f != 0 {
-                return Err(ModelError::Input(format!(
-                    "a {w}x{h} pair needs {} target codes (a multiple of {f} pixels), has {}",
-                    (w / f) * (h / f),
-                    p.codes.len()
-                )));
+                return Err(ModelError::shape(
+                    "a pair's target codes",
+                    format!("{} for {w}x{h} pixels (a multiple of {f})", (w / f) * (h / f)),
+                    p.codes.len(),
+                ));
             }
             if let Some(&bad) = p.codes.iter().find(|&&c| c as usize >= self.model_config.n_embed) {
-                return Err(ModelError::Input(format!(
-                    "target code {bad} >= codebook size {}",
-                    self.model_config.n_embed
-                )));
+                return Err(ModelError::shape("a target code", format!("below {}", self.model_config.n_embed), bad));
             }
             codes.extend_from_slice(&p.codes);
             miss.extend(missing_cells(&p.missing, w, h, f, self.train_config.missing_cell_threshold));
@@ -615,7 +612,7 @@ impl CodeTrainer {
     /// One optimisation step on `batch` (all pairs the same size).
     pub fn step_on(&mut self, batch: &[CodePair]) -> Result<CodeReport, ModelError> {
         if batch.is_empty() {
-            return Err(ModelError::Input("empty batch".into()));
+            return Err(ModelError::EmptyBatch("sampler training step"));
         }
         let revealed;
         let batch = if self.train_config.reveal > 0.0 {
@@ -667,7 +664,7 @@ impl CodeTrainer {
         }
         let loss_value = to_host(loss.clone().detach())?.first().copied().unwrap_or(f32::NAN);
         if !loss_value.is_finite() {
-            return Err(ModelError::Input(format!("the loss became {loss_value} at step {}", self.step + 1)));
+            return Err(ModelError::Diverged { loss: loss_value, step: self.step + 1 });
         }
         let mut grads = loss.backward();
         let lr = self.train_config.lr_at(self.step);
@@ -782,8 +779,7 @@ impl CodeTrainer {
         }
         let weights = dir.join("model.safetensors");
         let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
-        let tensors =
-            from_safetensors_bytes(&wbytes).map_err(|e| ModelError::Weights(format!("{}: {e}", weights.display())))?.0;
+        let tensors = from_safetensors_bytes(&wbytes).map_err(|e| e.in_file(&weights))?.0;
         let mut train_config = state.train_config;
         if let Some(s) = steps {
             train_config.steps = s;

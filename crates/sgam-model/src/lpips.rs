@@ -109,9 +109,8 @@ impl Lpips {
     /// autodiff device the images live on (`device.autodiff()`); its weights stay frozen there.
     pub fn load_on(path: &Path, device: &Device) -> Result<Self, ModelError> {
         let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
-        let with_path = |e: ModelError| ModelError::Weights(format!("{}: {}", path.display(), inner_message(e)));
-        let (tensors, _) = from_safetensors_bytes(&bytes).map_err(with_path)?;
-        Self::from_tensors(&tensors, device).map_err(with_path)
+        let (tensors, _) = from_safetensors_bytes(&bytes).map_err(|e| e.in_file(path))?;
+        Self::from_tensors(&tensors, device).map_err(|e| e.in_file(path))
     }
 
     /// Builds the network from named tensors (see [`expected_tensors`]); extra names are ignored.
@@ -152,7 +151,10 @@ impl Lpips {
         if !errors.is_empty() {
             let n = errors.len();
             errors.truncate(8);
-            return Err(ModelError::Weights(format!("LPIPS weights: {n} problem(s): {}", errors.join("; "))));
+            if n > errors.len() {
+                errors.push(format!("and {} more", n - errors.len()));
+            }
+            return Err(ModelError::WeightsMismatch { problems: errors });
         }
         Ok(Self { features, lin }.freeze())
     }
@@ -162,10 +164,11 @@ impl Lpips {
     pub fn try_forward(&self, a: Tensor<4>, b: Tensor<4>) -> Result<Tensor<1>, ModelError> {
         let (da, db) = (a.dims(), b.dims());
         if da != db || da[0] == 0 || da[1] != 3 || da[2] < MIN_SIDE || da[3] < MIN_SIDE {
-            return Err(ModelError::Input(format!(
-                "LPIPS needs two [B, 3, H, W] images of one size with B >= 1 and H, W >= {MIN_SIDE}; \
-                 got {da:?} and {db:?}"
-            )));
+            return Err(ModelError::shape(
+                "LPIPS's images",
+                format!("two [B, 3, H, W] of one size with B >= 1 and H, W >= {MIN_SIDE}"),
+                format!("{da:?} and {db:?}"),
+            ));
         }
         Ok(self.forward(a, b))
     }
@@ -225,12 +228,4 @@ fn scaling_layer(x: Tensor<4>) -> Tensor<4> {
 fn unit_normalise(f: Tensor<4>) -> Tensor<4> {
     let norm = f.clone().square().sum_dim(1).add_scalar(1e-20).sqrt();
     f / norm.add_scalar(1e-10)
-}
-
-/// The message of a model error without its category prefix (for re-wrapping with a path).
-fn inner_message(e: ModelError) -> String {
-    match e {
-        ModelError::Config(m) | ModelError::Input(m) | ModelError::Weights(m) => m,
-        other => other.to_string(),
-    }
 }

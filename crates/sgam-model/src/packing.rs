@@ -45,23 +45,27 @@ pub fn pack_values(
     coding: &DepthCoding,
 ) -> Result<(Vec<f32>, [usize; 4]), ModelError> {
     let Some(first) = frames.first() else {
-        return Err(ModelError::Input("no frames to pack".into()));
+        return Err(ModelError::EmptyBatch("packing frames"));
     };
     let (w, h) = (first.width() as usize, first.height() as usize);
     let hw = w * h;
     let mut out = vec![0.0f32; frames.len() * 5 * hw];
     for (b, frame) in frames.iter().enumerate() {
         if frame.width() as usize != w || frame.height() as usize != h || frame.depth_m.len() != hw {
-            return Err(ModelError::Input(format!(
-                "frame {b} is {}x{}, expected {w}x{h}",
-                frame.width(),
-                frame.height()
-            )));
+            return Err(ModelError::shape(
+                "a frame of the batch",
+                format!("{w}x{h} (the first frame's size)"),
+                format!("{}x{} (frame {b})", frame.width(), frame.height()),
+            ));
         }
         let mask = missing.get(b).copied().flatten();
         if let Some(m) = mask {
             if m.len() != hw {
-                return Err(ModelError::Input(format!("mask {b} has {} values for {w}x{h}", m.len())));
+                return Err(ModelError::shape(
+                    "a missing mask",
+                    format!("{hw} values for {w}x{h}"),
+                    format!("{} (mask {b})", m.len()),
+                ));
             }
         }
         let base = b * 5 * hw;
@@ -106,7 +110,7 @@ pub fn pack_input(
     }
     let [b, _, h, w] = shape;
     if intrinsics.len() != b {
-        return Err(ModelError::Input(format!("{} intrinsics for {b} frames", intrinsics.len())));
+        return Err(ModelError::shape("the intrinsics", format!("one per frame, {b}"), intrinsics.len()));
     }
     let hw = h * w;
     let mut out = Vec::with_capacity(b * 7 * hw);
@@ -135,7 +139,11 @@ pub fn unpack_values(values: &[f32], shape: [usize; 4], coding: &DepthCoding) ->
     let [b, c, h, w] = shape;
     let hw = h * w;
     if c != 4 || values.len() != b * 4 * hw {
-        return Err(ModelError::Input(format!("cannot unpack {} values as {shape:?}", values.len())));
+        return Err(ModelError::shape(
+            "an output to unpack",
+            format!("{} values for [B, 4, H, W] = {shape:?}", b * 4 * hw),
+            values.len(),
+        ));
     }
     let mut frames = Vec::with_capacity(b);
     for i in 0..b {
@@ -144,8 +152,10 @@ pub fn unpack_values(values: &[f32], shape: [usize; 4], coding: &DepthCoding) ->
             .map(|p| std::array::from_fn(|ch| ((values[base + ch * hw + p] + 1.0) * 0.5).clamp(0.0, 1.0)))
             .collect();
         let depth: Vec<f32> = (0..hw).map(|p| coding.decode(values[base + 3 * hw + p])).collect();
-        let colour = Image::try_from_vec(w as u32, h as u32, colour).map_err(|e| ModelError::Input(e.to_string()))?;
-        let depth = Image::try_from_vec(w as u32, h as u32, depth).map_err(|e| ModelError::Input(e.to_string()))?;
+        let colour = Image::try_from_vec(w as u32, h as u32, colour)
+            .map_err(|e| ModelError::shape("an unpacked colour image", format!("{w}x{h}"), e))?;
+        let depth = Image::try_from_vec(w as u32, h as u32, depth)
+            .map_err(|e| ModelError::shape("an unpacked depth image", format!("{w}x{h}"), e))?;
         frames.push(RgbdFrame { colour, depth_m: depth });
     }
     Ok(frames)
@@ -154,10 +164,7 @@ pub fn unpack_values(values: &[f32], shape: [usize; 4], coding: &DepthCoding) ->
 /// Inverts a `[B, 4, H, W]` output tensor into frames (see [`unpack_values`]).
 pub fn unpack(output: Tensor<4>, coding: &DepthCoding) -> Result<Vec<RgbdFrame>, ModelError> {
     let dims = output.dims();
-    let values = output
-        .into_data()
-        .try_to_vec_as::<f32>()
-        .map_err(|e| ModelError::Input(format!("reading output tensor: {e:?}")))?;
+    let values = output.into_data().try_to_vec_as::<f32>().map_err(|e| ModelError::TensorRead(format!("{e:?}")))?;
     unpack_values(&values, dims, coding)
 }
 

@@ -213,7 +213,11 @@ pub fn load_named<M: Module>(
     } else {
         let n = m.errors.len();
         m.errors.truncate(8);
-        Err(ModelError::Weights(format!("{} problem(s): {}", n, m.errors.join("; "))))
+        if n > m.errors.len() {
+            let more = n - m.errors.len();
+            m.errors.push(format!("and {more} more"));
+        }
+        Err(ModelError::WeightsMismatch { problems: std::mem::take(&mut m.errors) })
     }
 }
 
@@ -248,16 +252,18 @@ pub fn to_safetensors_bytes(
     let mut buffers: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::with_capacity(tensors.len());
     for (name, t) in tensors {
         if let Some(bad) = first_non_finite(&t.values) {
-            return Err(ModelError::Weights(format!("tensor {name}: {bad}; refusing to write it")));
+            return Err(ModelError::Unwritable { name: name.clone(), problem: bad });
         }
         let bytes: Vec<u8> = match precision {
             WeightPrecision::F32 => t.values.iter().flat_map(|v| v.to_le_bytes()).collect(),
             WeightPrecision::F16 => {
                 if let Some((i, v)) = t.values.iter().enumerate().find(|(_, v)| v.abs() > F16_MAX) {
-                    return Err(ModelError::Weights(format!(
-                        "tensor {name}: value {v} at index {i} overflows f16 (largest finite {F16_MAX}); \
-                         keep 32-bit floats"
-                    )));
+                    return Err(ModelError::Unwritable {
+                        name: name.clone(),
+                        problem: format!(
+                            "value {v} at index {i} overflows f16 (largest finite {F16_MAX}); keep 32-bit floats"
+                        ),
+                    });
                 }
                 t.values.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect()
             }
@@ -271,10 +277,10 @@ pub fn to_safetensors_bytes(
     let mut views = Vec::with_capacity(buffers.len());
     for (name, shape, bytes) in &buffers {
         let view = TensorView::new(dtype, shape.clone(), bytes)
-            .map_err(|e| ModelError::Weights(format!("tensor {name}: {e}")))?;
+            .map_err(|e| ModelError::Unwritable { name: name.clone(), problem: e.to_string() })?;
         views.push((name.clone(), view));
     }
-    safetensors::serialize(views, metadata).map_err(|e| ModelError::Weights(format!("serialising safetensors: {e}")))
+    safetensors::serialize(views, metadata).map_err(|e| ModelError::state("safetensors", e))
 }
 
 /// Named tensors by path (sorted).
@@ -284,7 +290,7 @@ pub type TensorMap = BTreeMap<String, NamedTensor>;
 pub fn from_safetensors_bytes(bytes: &[u8]) -> Result<(TensorMap, BTreeMap<String, String>), ModelError> {
     use safetensors::tensor::Dtype;
     let st = safetensors::SafeTensors::deserialize(bytes)
-        .map_err(|e| ModelError::Weights(format!("parsing safetensors: {e}")))?;
+        .map_err(|e| ModelError::Format { what: "safetensors", msg: e.to_string() })?;
     let mut out = BTreeMap::new();
     for (name, view) in st.tensors() {
         let data = view.data();
@@ -292,12 +298,17 @@ pub fn from_safetensors_bytes(bytes: &[u8]) -> Result<(TensorMap, BTreeMap<Strin
             Dtype::F32 => data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
             Dtype::F16 => data.chunks_exact(2).map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()).collect(),
             Dtype::BF16 => data.chunks_exact(2).map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32()).collect(),
-            other => return Err(ModelError::Weights(format!("tensor {name}: unsupported dtype {other:?}"))),
+            other => {
+                return Err(ModelError::Format {
+                    what: "a safetensors tensor",
+                    msg: format!("{name}: unsupported dtype {other:?}"),
+                })
+            }
         };
         out.insert(name, NamedTensor { shape: view.shape().to_vec(), values });
     }
     let (_, meta) = safetensors::SafeTensors::read_metadata(bytes)
-        .map_err(|e| ModelError::Weights(format!("parsing safetensors header: {e}")))?;
+        .map_err(|e| ModelError::Format { what: "a safetensors header", msg: e.to_string() })?;
     let metadata: BTreeMap<String, String> = meta.metadata().clone().unwrap_or_default().into_iter().collect();
     Ok((out, metadata))
 }

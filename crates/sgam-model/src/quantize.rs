@@ -65,7 +65,7 @@ pub(crate) fn argmin(row: &[f32]) -> usize {
 }
 
 pub(crate) fn to_host<const D: usize>(t: Tensor<D>) -> Result<Vec<f32>, ModelError> {
-    t.into_data().try_to_vec_as::<f32>().map_err(|e| ModelError::Input(format!("reading tensor: {e:?}")))
+    t.into_data().try_to_vec_as::<f32>().map_err(|e| ModelError::TensorRead(format!("{e:?}")))
 }
 
 /// Chooses one code per row of the `[n, k]` distance matrix. `missing[i]` marks rows that may be

@@ -23,9 +23,12 @@ use crate::ModelError;
 /// Safetensors metadata key holding the [`ModelConfig`] JSON.
 pub const CONFIG_METADATA_KEY: &str = "sgam_model_config";
 
+/// What a [`ModelError::Format`] error of a config file given beside the weights names.
+const CONFIG_JSON: &str = "the config JSON";
+
 /// Metadata map carrying `config`.
 pub fn weight_metadata(config: &ModelConfig) -> Result<HashMap<String, String>, ModelError> {
-    let json = serde_json::to_string(config).map_err(|e| ModelError::Config(format!("serialising config: {e}")))?;
+    let json = serde_json::to_string(config).map_err(|e| ModelError::state("the model config", e))?;
     Ok(HashMap::from([(CONFIG_METADATA_KEY.to_string(), json)]))
 }
 
@@ -49,13 +52,15 @@ pub fn load_model_bytes(
     let (tensors, meta) = from_safetensors_bytes(weights)?;
     let config: ModelConfig = match config_json {
         Some(json) => {
-            serde_json::from_slice(json).map_err(|e| ModelError::Config(format!("parsing config JSON: {e}")))?
+            serde_json::from_slice(json).map_err(|e| ModelError::Format { what: CONFIG_JSON, msg: e.to_string() })?
         }
         None => {
-            let json = meta.get(CONFIG_METADATA_KEY).ok_or_else(|| {
-                ModelError::Config(format!("weights carry no '{CONFIG_METADATA_KEY}' metadata and no config was given"))
+            let json = meta.get(CONFIG_METADATA_KEY).ok_or_else(|| ModelError::MissingPart {
+                part: "a config (no 'sgam_model_config' metadata in the weights, and none given)",
+                operation: "loading weights",
             })?;
-            serde_json::from_str(json).map_err(|e| ModelError::Config(format!("parsing embedded config: {e}")))?
+            serde_json::from_str(json)
+                .map_err(|e| ModelError::Format { what: "the embedded config", msg: e.to_string() })?
         }
     };
     let model = load_named(VqModel::new(&config, 0, device)?, &tensors, false, false)?;
@@ -73,9 +78,9 @@ pub fn load_model(
         Some(p) => Some(std::fs::read(p).map_err(|e| ModelError::io(p, e))?),
         None => None,
     };
-    load_model_bytes(&bytes, cfg.as_deref(), device).map_err(|e| match e {
-        ModelError::Weights(m) => ModelError::Weights(format!("{}: {m}", weights.display())),
-        other => other,
+    load_model_bytes(&bytes, cfg.as_deref(), device).map_err(|e| match (&e, config) {
+        (ModelError::Format { what: CONFIG_JSON, .. }, Some(p)) => e.in_file(p),
+        _ => e.in_file(weights),
     })
 }
 
@@ -232,13 +237,20 @@ impl VqRefiner {
     ) -> Result<RgbdFrame, ModelError> {
         let (w, h) = (frame.width() as usize, frame.height() as usize);
         if missing.len() != w * h {
-            return Err(ModelError::Input(format!("mask has {} values for a {w}x{h} frame", missing.len())));
+            return Err(ModelError::shape(
+                "the missing mask",
+                format!("{} values for a {w}x{h} frame", w * h),
+                missing.len(),
+            ));
         }
         let intrinsics = match intrinsics {
             Some(k) => *k,
             None if !self.config.ray_channels => Intrinsics::from_fov_x(w as u32, h as u32, 1.0),
             None => {
-                return Err(ModelError::Input("this model has ray channels and needs the frame's intrinsics".into()))
+                return Err(ModelError::MissingPart {
+                    part: "the frame's intrinsics",
+                    operation: "a model with ray channels",
+                })
             }
         };
         let f = self.config.downsample_factor();
@@ -348,6 +360,59 @@ impl VqRefiner {
         Ok(out)
     }
 
+    /// Decodes `frame` with `hole_codes` (one per latent cell, row-major) in its missing latent
+    /// cells and the model's most likely code in the others: what a sampler that drew exactly
+    /// these codes would return. Given the true frame's codes
+    /// ([`crate::generative::target_codes`]), it is the best any sampler can do with this
+    /// codebook and decoder. The frame's sides must be multiples of the downsampling factor.
+    pub fn complete_with_codes(
+        &mut self,
+        frame: &RgbdFrame,
+        missing: &[bool],
+        intrinsics: &Intrinsics,
+        hole_codes: &[u32],
+    ) -> Result<RgbdFrame, ModelError> {
+        let (w, h, f) = (frame.width() as usize, frame.height() as usize, self.config.downsample_factor());
+        if !w.is_multiple_of(f) || !h.is_multiple_of(f) || missing.len() != w * h {
+            return Err(ModelError::shape(
+                "a frame to decode with given codes",
+                format!("sides that are multiples of {f} and a mask of {} values", w * h),
+                format!("{w}x{h} and {} values", missing.len()),
+            ));
+        }
+        let (ch, cw) = (h / f, w / f);
+        if hole_codes.len() != ch * cw || hole_codes.iter().any(|&c| c as usize >= self.config.n_embed) {
+            return Err(ModelError::shape(
+                "the hole codes",
+                format!("{} codes below {}", ch * cw, self.config.n_embed),
+                format!("{} codes", hole_codes.len()),
+            ));
+        }
+        let cells = missing_cells(missing, w, h, f, self.options.missing_cell_threshold);
+        let x = pack_input(&[frame], &[Some(missing)], &[*intrinsics], &self.config, &self.device)?;
+        let k = self.config.n_embed;
+        let dist = match self.model.code_logits(x.clone()) {
+            Some(logits) => to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]).neg())?,
+            None => {
+                let z = self.model.encode(x);
+                let d = self.config.embed_dim;
+                let rows = z.permute([0, 2, 3, 1]).reshape([ch * cw, d]);
+                to_host(squared_distances(rows, self.model.quantize.embedding.weight.val()))?
+            }
+        };
+        let mut codes = select_codes(&dist, ch * cw, k, None, Sampling::Argmin, &mut self.rng);
+        for (i, m) in cells.iter().enumerate() {
+            if *m {
+                codes[i] = hole_codes[i];
+            }
+        }
+        let mut out = self.decode_codes(&codes, ch, cw)?;
+        if self.options.keep_observed {
+            keep_observed(&mut out, frame, missing);
+        }
+        Ok(out)
+    }
+
     /// Draws every cell's code with the scene-wide context ([`crate::context`]): the encoder
     /// runs once on the guidance; observed cells take the head's most likely code; the missing
     /// cells are covered by windows of at most `window_cells` per side, each a core of missing
@@ -367,16 +432,16 @@ impl VqRefiner {
         within: Option<f32>,
     ) -> Result<SamplingTrace, ModelError> {
         let Some(context) = self.model.context.as_ref() else {
-            return Err(ModelError::Config("the model has no context".into()));
+            return Err(ModelError::MissingPart { part: "a context", operation: "context sampling" });
         };
         let Some(head) = self.model.code_head.as_ref() else {
-            return Err(ModelError::Config("a context needs the code head".into()));
+            return Err(ModelError::MissingPart { part: "a code head", operation: "context sampling" });
         };
         let Some(cfg) = self.config.context.clone() else {
-            return Err(ModelError::Config("the model config has no context".into()));
+            return Err(ModelError::MissingPart { part: "a context in its config", operation: "context sampling" });
         };
         let Sampling::Temperature { temperature, .. } = self.effective_sampling() else {
-            return Err(ModelError::Config("context sampling needs a temperature".into()));
+            return Err(ModelError::MissingPart { part: "a sampling temperature", operation: "context sampling" });
         };
         let sampling = self.effective_sampling();
         let k = self.config.n_embed;
@@ -496,9 +561,7 @@ impl VqRefiner {
         let rows = self.model.quantize.lookup(codes, &self.device);
         let [_, d] = rows.dims();
         let z_q = rows.reshape([1, h, w, d]).permute([0, 3, 1, 2]);
-        unpack(self.model.decode(z_q), &self.config.depth)?
-            .pop()
-            .ok_or_else(|| ModelError::Input("empty output".into()))
+        unpack(self.model.decode(z_q), &self.config.depth)?.pop().ok_or(ModelError::EmptyBatch("decoding codes"))
     }
 }
 

@@ -189,7 +189,7 @@ impl TrainConfig {
     /// Checks every field is finite and in range for `model` (the crop a positive multiple of its
     /// downsampling factor). Errors name the field and the accepted range.
     pub fn validate(&self, model: &ModelConfig) -> Result<(), ModelError> {
-        let bad = |m: String| Err(ModelError::Config(format!("training: {m}")));
+        let bad = |m: String| Err(ModelError::config("training", m));
         if self.steps > MAX_STEPS {
             return bad(format!("steps {} out of range 0..={MAX_STEPS}", self.steps));
         }
@@ -481,15 +481,12 @@ fn freeze_for_stage(model: VqModel, stage: Stage) -> VqModel {
 
 fn read_weights(path: &Path) -> Result<std::collections::BTreeMap<String, crate::params::NamedTensor>, ModelError> {
     let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
-    Ok(from_safetensors_bytes(&bytes).map_err(|e| ModelError::Weights(format!("{}: {e}", path.display())))?.0)
+    Ok(from_safetensors_bytes(&bytes).map_err(|e| e.in_file(path))?.0)
 }
 
 /// Loads the weights file `path` into `module` ([`load_named`]); errors name the file.
 fn load_weights<M: Module>(module: M, path: &Path) -> Result<M, ModelError> {
-    load_named(module, &read_weights(path)?, false, false).map_err(|e| match e {
-        ModelError::Weights(m) => ModelError::Weights(format!("{}: {m}", path.display())),
-        other => other,
-    })
+    load_named(module, &read_weights(path)?, false, false).map_err(|e| e.in_file(path))
 }
 
 /// Folder of a run's committed checkpoint (`RUN/ckpt`).
@@ -797,7 +794,10 @@ impl Trainer {
                 patch,
             );
             let grads = loss_of(out).backward();
-            let g = w.grad(&grads).ok_or_else(|| ModelError::Input("no gradient at decoder.conv_out".into()))?;
+            let g = w.grad(&grads).ok_or(ModelError::MissingPart {
+                part: "a gradient at decoder.conv_out",
+                operation: "the adaptive GAN weight",
+            })?;
             Ok(scalar(&g.square().sum())?.sqrt())
         };
         let rec_norm = norm_of(&|out| {
@@ -867,7 +867,7 @@ impl Trainer {
             let dims = out.dims();
             psnrs.push(psnr_rgb(&to_host(out.clone())?, &to_host(t)?, 1, dims[2] * dims[3]));
             let output =
-                unpack(out, &self.model_config.depth)?.pop().ok_or_else(|| ModelError::Input("empty".into()))?;
+                unpack(out, &self.model_config.depth)?.pop().ok_or(ModelError::EmptyBatch("validation decode"))?;
             images.push(ValidationImage { input: pair.input.clone(), output, target: pair.target.clone() });
         }
         let mean = psnrs.iter().sum::<f32>() / psnrs.len().max(1) as f32;

@@ -266,7 +266,7 @@ fn lpips_load_errors_name_the_file_and_tensor() {
     let path = tmp.path().join("bad-shape.safetensors");
     write_weights(&path, &wrong);
     let err = Lpips::load(&path).unwrap_err();
-    assert!(matches!(err, ModelError::Weights(_)), "{err:?}");
+    assert!(matches!(err.innermost(), ModelError::WeightsMismatch { .. }), "{err:?}");
     let err = err.to_string();
     assert!(err.contains("bad-shape.safetensors") && err.contains("features.10.weight"), "{err}");
     assert!(err.contains("[256, 128, 3, 3]"), "expected shape named: {err}");

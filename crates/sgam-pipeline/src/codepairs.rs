@@ -32,22 +32,42 @@ struct Recorded {
     truth: RgbdFrame,
 }
 
-/// The oracle refiner, recording what it was asked and what it answered.
-struct RecordingOracle {
+/// The refiner of a recorded run: records what it was asked and the truth, and answers with the
+/// truth (the oracle), or with a model's completion when the run is closed-loop.
+struct Recorder {
     renderer: Arc<Renderer>,
     log: Arc<Mutex<Vec<Recorded>>>,
+    model: Option<sgam_model::VqRefiner>,
 }
 
-impl Refiner for RecordingOracle {
-    type Error = std::convert::Infallible;
+impl Refiner for Recorder {
+    type Error = sgam_model::ModelError;
 
     fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, Self::Error> {
         let truth = self.renderer.render(&guidance.camera, &RenderConfig::default()).frame;
         if let Ok(mut log) = self.log.lock() {
             log.push(Recorded { guidance: guidance.clone(), truth: truth.clone() });
         }
-        Ok(truth)
+        match &mut self.model {
+            Some(m) => m.refine(guidance),
+            None => Ok(truth),
+        }
     }
+}
+
+/// Closed-loop recording: a share of the recorded runs grows its map with a model's own
+/// completions (the truth is still each pair's target), so the pairs hold the guidance
+/// generation really sees — its earlier inventions re-rendered, smears and all — and not only
+/// the oracle's clean maps (exposure bias: a model trained on clean guidance only learns to
+/// continue whatever the guidance shows).
+#[derive(Debug, Clone, Copy)]
+pub struct ClosedLoop<'a> {
+    /// Share of the runs (0-1) whose map grows with the model's completions.
+    pub share: f32,
+    /// The model (safetensors bytes, config embedded).
+    pub weights: &'a [u8],
+    /// Its sampling options (generation's; the seed is drawn per run).
+    pub options: sgam_model::RefinerOptions,
 }
 
 /// The trajectory shapes pairs are drawn from.
@@ -75,8 +95,15 @@ fn draw_shape(rng: &mut ChaCha8Rng) -> Shape {
 }
 
 /// Runs the generator with the oracle for `steps` steps on training scene `scene_seed` from a
-/// random start, returning every step's guidance and truth (the exact generation path).
-fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> Result<Vec<Recorded>> {
+/// random start, returning every step's guidance and truth (the exact generation path). With
+/// `model`, the generator's map grows with the model's completions instead of the truth.
+fn record_run(
+    scene_seed: u64,
+    steps: usize,
+    res: u32,
+    rng: &mut ChaCha8Rng,
+    model: Option<sgam_model::VqRefiner>,
+) -> Result<Vec<Recorded>> {
     let renderer = Arc::new(Renderer::new(&Scene::generate(scene_seed, &SceneConfig::default())));
     let start = Vec3::new(rng.random_range(-26.0..2.0), rng.random_range(-26.0..2.0), sgam_synth::CAMERA_HEIGHT_M);
     let seed_camera = blender_camera(start, sgam_synth::CAMERA_PITCH_RAD, 0.0, dataset_intrinsics(res));
@@ -102,7 +129,7 @@ fn record_run(scene_seed: u64, steps: usize, res: u32, rng: &mut ChaCha8Rng) -> 
     let dir = tempfile::tempdir().map_err(|e| sgam_io::IoError::Io { path: std::env::temp_dir(), source: e })?;
     let config = clevr_generator_config(scene_seed);
     let log = Arc::new(Mutex::new(Vec::new()));
-    let oracle = RecordingOracle { renderer: renderer.clone(), log: log.clone() };
+    let oracle = Recorder { renderer: renderer.clone(), log: log.clone(), model };
     let keyframes = Keyframes::new(dir.path(), config.source_radius_m, 16);
     let mut generator = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, oracle, config);
     let seed_frame = renderer.render(&seed_camera, &RenderConfig::default()).frame;
@@ -162,6 +189,7 @@ pub fn collect(
     crop: u32,
     scene_limit: u64,
     target: (&VqModel, &ModelConfig),
+    closed_loop: Option<ClosedLoop<'_>>,
     rng: &mut ChaCha8Rng,
     progress: &mut dyn FnMut(usize),
 ) -> Result<Vec<CodePair>> {
@@ -170,7 +198,18 @@ pub fn collect(
     let mut pairs = Vec::with_capacity(n);
     while pairs.len() < n {
         let scene = rng.random_range(0..scene_limit);
-        let recorded = record_run(scene, steps_per_run, 256, rng)?;
+        // drawn only when closed-loop recording is asked for, so the oracle's pairs stay as they were
+        let model = match closed_loop {
+            Some(c) if c.share > 0.0 && rng.random::<f32>() < c.share => {
+                let options = sgam_model::RefinerOptions { seed: rng.random(), ..c.options };
+                Some(
+                    sgam_model::VqRefiner::from_bytes(c.weights, None, options)
+                        .map_err(|source| PipelineError::ModelLoad { path: None, source })?,
+                )
+            }
+            _ => None,
+        };
+        let recorded = record_run(scene, steps_per_run, 256, rng, model)?;
         for chunk in recorded.chunks(8) {
             let truths: Vec<&RgbdFrame> = chunk.iter().map(|r| &r.truth).collect();
             let intr: Vec<Intrinsics> = chunk.iter().map(|r| r.guidance.camera.intrinsics).collect();
@@ -205,6 +244,9 @@ pub struct CacheKey {
     pub seed: u64,
     /// RNG stream.
     pub stream: u64,
+    /// Share of closed-loop runs ([`ClosedLoop`]; absent in caches recorded before it: 0).
+    #[serde(default)]
+    pub closed_loop: f32,
 }
 
 const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
@@ -312,7 +354,7 @@ mod tests {
         // a generator run records what it handed the refiner; rebuilding the map from the same
         // frames and calling render_guidance with the same sources must give the same image
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let recorded = record_run(11, 4, 64, &mut rng).unwrap();
+        let recorded = record_run(11, 4, 64, &mut rng, None).unwrap();
         assert_eq!(recorded.len(), 4);
         let config = clevr_generator_config(11);
         // replay: the map holds the seed and steps 1..3; the guidance of step 4 comes from it
@@ -366,6 +408,26 @@ mod tests {
     }
 
     #[test]
+    fn a_closed_loop_run_grows_its_map_with_the_model_and_keeps_the_truth_as_target() {
+        let options = crate::settings::SamplingSettings::default().refiner_options();
+        let model = sgam_model::VqRefiner::from_bytes(crate::BUNDLED_MODEL, None, options).unwrap();
+        let oracle = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), None).unwrap();
+        let closed = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), Some(model)).unwrap();
+        assert_eq!(closed.len(), oracle.len());
+        // the same path and the same true frames: only the map differs
+        for (a, b) in oracle.iter().zip(&closed) {
+            assert_eq!(a.guidance.camera, b.guidance.camera);
+            assert_eq!(a.truth, b.truth);
+        }
+        // the first step sees the seed alone, in both
+        assert_eq!(oracle[0].guidance.frame, closed[0].guidance.frame);
+        // later steps see the model's inventions re-rendered: some guidance differs
+        let differing = oracle.iter().zip(&closed).filter(|(a, b)| a.guidance.frame != b.guidance.frame).count();
+        assert!(differing > 0, "every closed-loop guidance equals the oracle's");
+        assert!(oracle.iter().any(|r| r.guidance.missing.iter().any(|m| *m)), "the path uncovers nothing");
+    }
+
+    #[test]
     fn pairs_come_from_every_trajectory_shape_in_the_stated_shares() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let mut counts = [0usize; 5];
@@ -409,7 +471,16 @@ mod tests {
                 }
             })
             .collect();
-        let key = CacheKey { version: 1, pairs: 3, steps_per_run: 5, crop: 16, scenes: 10, seed: 2, stream: 1 };
+        let key = CacheKey {
+            version: 1,
+            pairs: 3,
+            steps_per_run: 5,
+            crop: 16,
+            scenes: 10,
+            seed: 2,
+            stream: 1,
+            closed_loop: 0.0,
+        };
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("pairs.bin");
         write_cache(&path, &key, &pairs).unwrap();

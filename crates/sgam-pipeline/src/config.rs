@@ -33,6 +33,10 @@ pub struct OutputSettings {
     pub mp4: bool,
     /// Write orbit.mp4.
     pub orbit_video: bool,
+    /// Write guidance/NNNNN.png: what the refiner was given (holes magenta), what it returned,
+    /// and the frame after the invented-pixel filters, side by side.
+    #[serde(default)]
+    pub guidance_png: bool,
 }
 
 /// A generation run, resolved.

@@ -145,6 +145,8 @@ pub struct WorldGenerator<R: Refiner> {
     config: GeneratorConfig,
     /// The seed frame's ground plane once fitted (`Some(None)`: the seed shows no plane).
     ground: Option<Option<GroundPlane>>,
+    /// The last step's guidance and raw refiner output, kept when [`Self::keep_guidance`] is on.
+    last_guidance: Option<Option<(Guidance, RgbdFrame)>>,
 }
 
 impl<R: Refiner> std::fmt::Debug for WorldGenerator<R> {
@@ -157,7 +159,19 @@ impl<R: Refiner> WorldGenerator<R> {
     /// A generator over an existing map and keyframe store (empty for a new run, loaded from a
     /// snapshot when resuming).
     pub fn new(map: TsdfMap, keyframes: Keyframes, refiner: R, config: GeneratorConfig) -> Self {
-        Self { map, keyframes, refiner, config, ground: None }
+        Self { map, keyframes, refiner, config, ground: None, last_guidance: None }
+    }
+
+    /// Keeps each step's guidance and raw refiner output for [`Self::last_guidance`] (off by
+    /// default: two frames of copies per step).
+    pub fn keep_guidance(&mut self, on: bool) {
+        self.last_guidance = on.then_some(None);
+    }
+
+    /// The last step's guidance and the refiner's raw completion (before the invented-pixel
+    /// filters), when [`Self::keep_guidance`] is on and a step has run.
+    pub fn last_guidance(&self) -> Option<&(Guidance, RgbdFrame)> {
+        self.last_guidance.as_ref().and_then(Option::as_ref)
     }
 
     /// The seed frame's ground plane (fitted on first use from keyframe 0, which is stored
@@ -202,6 +216,9 @@ impl<R: Refiner> WorldGenerator<R> {
         // complete the incomplete RGB-D image in one shot
         let mut frame = self.refiner.refine(&guidance).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         quantise_colour(&mut frame.colour);
+        if let Some(kept) = &mut self.last_guidance {
+            *kept = Some((guidance.clone(), frame.clone()));
+        }
         if self.config.snap_flying_pixels {
             let plane = self.ground_plane()?;
             let cfg = FlyingPixelConfig::new(self.config.tsdf.depth_max_m);

@@ -29,6 +29,7 @@ mod config;
 mod error;
 mod generator;
 mod greedy;
+pub mod guidance_view;
 mod keyframes;
 mod pairs;
 mod poses;

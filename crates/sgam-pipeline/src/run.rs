@@ -92,6 +92,7 @@ pub fn generate(
         None => (TsdfMap::new(gconfig.tsdf), Vec::new()),
     };
     let mut generator = WorldGenerator::new(map, keyframes, refiner, gconfig);
+    generator.keep_guidance(config.outputs.guidance_png);
     let snapshot = |generator: &RunGenerator, timings: &[StepTimings]| {
         let state = SnapshotState {
             config: config.clone(),

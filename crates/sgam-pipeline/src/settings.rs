@@ -563,6 +563,11 @@ pub struct OutputArgs {
     /// Also write orbit.mp4: one turn around the final mesh.
     #[arg(long)]
     pub orbit_video: bool,
+    /// Also write guidance/NNNNN.png per step: the guidance the refiner was given (holes in
+    /// magenta), its raw completion, and the frame after the invented-pixel filters, side by side
+    /// (to see where an invented object came from).
+    #[arg(long)]
+    pub guidance_png: bool,
 }
 
 impl Default for OutputArgs {
@@ -574,6 +579,7 @@ impl Default for OutputArgs {
             no_video: false,
             no_mp4: false,
             orbit_video: false,
+            guidance_png: false,
         }
     }
 }
@@ -595,6 +601,7 @@ impl OutputArgs {
             video: !self.no_video,
             mp4: !self.no_mp4,
             orbit_video: self.orbit_video,
+            guidance_png: self.guidance_png,
         }
     }
 }

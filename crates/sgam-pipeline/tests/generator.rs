@@ -32,6 +32,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
             video: false,
             mp4: false,
             orbit_video: false,
+            guidance_png: false,
         },
         ground_snap_m: None,
         snap_flying_pixels: false,
@@ -129,28 +130,115 @@ fn interrupted_then_resumed_run_equals_uninterrupted_run_for_both_pose_sources()
     }
 }
 
+/// Before each greedy choice, the coverage of every cell the planner may move to: the unvisited
+/// in-grid 8-neighbours of the current cell, each scored as the planner documents it (pixels of
+/// the map's 64-pixel-wide render at that cell that hit a front-facing surface).
+struct CoverageLog {
+    seed: Camera,
+    step_m: f32,
+    side: i32,
+    visited: Vec<(i32, i32)>,
+    /// Per step: the candidates in `(i, j)` order with their coverage.
+    candidates: Vec<Vec<((i32, i32), usize)>>,
+}
+
+impl CoverageLog {
+    fn cell_of(&self, c: &Camera) -> (i32, i32) {
+        let d = (c.centre_world() - self.seed.centre_world()) / self.step_m;
+        (d.x.round() as i32, d.y.round() as i32)
+    }
+
+    fn record(&mut self, map: &mut sgam_map::TsdfMap) {
+        let (ci, cj) = *self.visited.last().unwrap();
+        let mut scored = Vec::new();
+        for i in ci - 1..=ci + 1 {
+            for j in cj - 1..=cj + 1 {
+                let free =
+                    (0..self.side).contains(&i) && (0..self.side).contains(&j) && !self.visited.contains(&(i, j));
+                if !free {
+                    continue;
+                }
+                let k = self.seed.intrinsics;
+                let h = (64.0 * k.height as f32 / k.width as f32).round() as u32;
+                let pose = sgam_core::trajectory::grid_pose(&self.seed.world_from_camera, i, j, self.step_m);
+                let r = map.remesh_and_rasterize(&Camera::new(k.resized(64, h), pose));
+                scored.push(((i, j), r.covered.iter().zip(&r.back_facing).filter(|(c, b)| **c && !**b).count()));
+            }
+        }
+        self.candidates.push(scored);
+    }
+}
+
+impl sgam_pipeline::RunObserver for CoverageLog {
+    fn after_seed(&mut self, g: &mut sgam_pipeline::run::RunGenerator) -> sgam_pipeline::Result<()> {
+        self.record(&mut g.map);
+        Ok(())
+    }
+
+    fn after_step(
+        &mut self,
+        _index: usize,
+        _total: usize,
+        g: &mut sgam_pipeline::run::RunGenerator,
+        _t: &sgam_pipeline::StepTimings,
+    ) -> sgam_pipeline::Result<()> {
+        let cell = self.cell_of(g.keyframes.cameras().last().unwrap());
+        self.visited.push(cell);
+        self.record(&mut g.map);
+        Ok(())
+    }
+}
+
 #[test]
 fn the_greedy_walk_visits_distinct_grid_cells_next_to_each_other() {
+    let (side, step_m) = (3usize, 0.408f32);
     let tmp = tempfile::tempdir().unwrap();
-    let c = config(48, 8, TrajectorySpec::Greedy { side: 3, step_m: 0.408 }, RefinerSpec::Null { fill: true });
-    let run = generate(tmp.path(), &c, None, None, None, &mut Quiet).unwrap();
-    let seed = run.generator.keyframes.cameras()[0].centre_world();
-    let cells: Vec<(i32, i32)> = run
-        .generator
-        .keyframes
-        .cameras()
-        .iter()
-        .map(|c: &Camera| {
-            let d = (c.centre_world() - seed) / 0.408;
-            (d.x.round() as i32, d.y.round() as i32)
-        })
-        .collect();
+    let c = config(48, 8, TrajectorySpec::Greedy { side, step_m }, RefinerSpec::Null { fill: true });
+    let seed = sgam_pipeline::synthetic_seed_camera(48);
+    let mut log = CoverageLog { seed, step_m, side: side as i32, visited: vec![(0, 0)], candidates: Vec::new() };
+    let run = generate(&tmp.path().join("logged"), &c, None, None, None, &mut log).unwrap();
+    let cells: Vec<(i32, i32)> = run.generator.keyframes.cameras().iter().map(|c| log.cell_of(c)).collect();
+    assert_eq!(cells, log.visited, "the observer followed the walk");
+    // scoring the candidates in the observer does not change the walk
+    let quiet = generate(&tmp.path().join("quiet"), &c, None, None, None, &mut Quiet).unwrap();
+    assert_eq!(quiet.generator.keyframes.cameras(), run.generator.keyframes.cameras());
+    // 8 steps on a 3 x 3 grid: all 9 cells, each once, every pose on a lattice point
     assert_eq!(cells.len(), 9);
+    for (cam, cell) in run.generator.keyframes.cameras().iter().zip(&cells) {
+        let want = sgam_core::trajectory::grid_pose(&seed.world_from_camera, cell.0, cell.1, step_m).translation;
+        assert!((cam.centre_world() - want).length() < 1e-5, "{cell:?}: off the lattice");
+    }
     let mut sorted = cells.clone();
     sorted.sort_unstable();
     sorted.dedup();
     assert_eq!(sorted.len(), 9, "a cell visited twice: {cells:?}");
     assert!(sorted.iter().all(|&(i, j)| (0..3).contains(&i) && (0..3).contains(&j)), "{cells:?}");
+    let mut discriminating = 0;
+    for (k, (prev, next)) in cells.iter().zip(&cells[1..]).enumerate() {
+        let scored = &log.candidates[k];
+        if scored.is_empty() {
+            // no free neighbour: the nearest unvisited cell 4-adjacent to the visited ones
+            let seen = &cells[..=k];
+            let touches = |&(i, j): &(i32, i32)| seen.iter().any(|&(a, b)| (a - i).abs() + (b - j).abs() == 1);
+            let nearest = (0..3)
+                .flat_map(|i| (0..3).map(move |j| (i, j)))
+                .filter(|c| !seen.contains(c) && touches(c))
+                .min_by_key(|&(i, j)| ((i - prev.0).pow(2) + (j - prev.1).pow(2), i, j));
+            assert_eq!(Some(*next), nearest, "step {}: stuck at {prev:?}, {cells:?}", k + 1);
+            continue;
+        }
+        // a grid neighbour of the previous cell, the one whose view is most complete, the
+        // lowest (i, j) among equals
+        assert!((next.0 - prev.0).abs() <= 1 && (next.1 - prev.1).abs() <= 1, "step {}: {prev:?} -> {next:?}", k + 1);
+        let best = scored.iter().map(|(_, s)| *s).max().unwrap();
+        let first_best = scored.iter().find(|(_, s)| *s == best).unwrap().0;
+        assert_eq!(*next, first_best, "step {}: chose {next:?} among {scored:?}", k + 1);
+        if scored.iter().any(|(_, s)| *s != best) {
+            discriminating += 1;
+        }
+    }
+    // the coverage decided, not only the tie-break order
+    assert!(discriminating >= 3, "coverage told the candidates apart on {discriminating} steps: {:?}", log.candidates);
 }
 
 #[test]
@@ -172,10 +260,29 @@ fn a_snapshot_of_another_format_version_is_refused_with_a_clear_error() {
 
 #[test]
 fn a_missing_synthetic_world_makes_the_oracle_an_error_not_a_panic() {
+    // A seed that loads but has no synthetic world behind it: the held-out scene's seed view
+    // written as an RGB-D pair (PNG colour, 16-bit millimetre depth), so the run gets past
+    // loading its seed and reaches the refiner factory, which needs the world the oracle renders.
     let tmp = tempfile::tempdir().unwrap();
+    let camera = sgam_pipeline::synthetic_seed_camera(32);
+    let scene = Scene::generate(HELD_OUT_SEED_BASE, &SceneConfig::default());
+    let frame = Renderer::new(&scene).render(&camera, &RenderConfig::default()).frame;
+    let (rgb, depth) = (tmp.path().join("seed.png"), tmp.path().join("seed-depth.png"));
+    sgam_io::write_rgb_png(&rgb, &frame.colour).unwrap();
+    sgam_io::write_depth_png_mm(&depth, &frame.depth_m).unwrap();
+    let k = camera.intrinsics;
     let mut c = config(32, 2, zigzag(2), RefinerSpec::Oracle);
-    c.seed = SeedSpec::ClevrTemplate { dir: tmp.path().join("no-such-template") };
-    assert!(generate(&tmp.path().join("run"), &c, None, None, None, &mut Quiet).is_err());
+    c.seed = SeedSpec::Rgbd { rgb, depth, intrinsics: [k.fx, k.fy, k.cx, k.cy] };
+    // control: the same seed runs with a refiner that needs no world
+    let null = RunConfig { refiner: RefinerSpec::Null { fill: true }, ..c.clone() };
+    let run = generate(&tmp.path().join("null"), &null, None, None, None, &mut Quiet).unwrap();
+    assert!(run.finished && run.generator.keyframes.len() == 3);
+    // the oracle: an error value from the refiner factory, naming what it needs, before any
+    // file of the run is written
+    let dir = tmp.path().join("oracle");
+    let e = generate(&dir, &c, None, None, None, &mut Quiet).unwrap_err().to_string();
+    assert!(e.contains("--refiner oracle needs a synthetic seed"), "{e}");
+    assert!(!dir.join(SNAPSHOT_FILE).exists() && !dir.join("rgb").exists(), "the failed run wrote files");
 }
 
 #[test]
@@ -198,7 +305,10 @@ fn revisiting_the_seed_pose_from_a_pose_file_reproduces_the_seed_frame() {
     let first = run.generator.keyframes.frame(0).unwrap();
     let last = run.generator.keyframes.frame(6).unwrap();
     let psnr = sgam_metrics::psnr(&first.colour, &last.colour, None).unwrap();
-    assert!(psnr >= 30.0, "revisit PSNR {psnr:.2} dB");
+    // Source of the bound: measured, 32.58 dB for this seed, loop, resolution and the null
+    // refiner (what a revisit loses is the 5 cm map's colour averaging and the 8-bit frames).
+    // 31.5 dB leaves about 1 dB for float differences between platforms.
+    assert!(psnr >= 31.5, "revisit PSNR {psnr:.2} dB, measured 32.58 dB");
 }
 
 /// A refiner that invents a surface `depth_m` ahead in every missing pixel.

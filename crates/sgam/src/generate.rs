@@ -16,7 +16,7 @@ pub use sgam_pipeline::settings::{RefinerKind, TrajectoryKind};
 /// Arguments of `sgam generate`.
 #[derive(Debug, Clone, Args)]
 #[command(
-    after_help = "Examples:\n  sgam generate                                  # 100 steps from a synthetic seed\n  sgam generate --steps 900 --out runs/big       # the paper's 30x30 zig-zag world\n  sgam generate --resume runs/big                # continue after an interruption\n  sgam generate --seed-template ../shared/data/sgam-clevr-template\n  sgam generate --seed-rgb im.png --seed-depth d.png --intrinsics 500,500,320,240 \\\n      --trajectory line --step 0.1 --steps 50\n\nOutputs in the run folder: rgb/NNNNN.png, depth/NNNNN.npy (+ .png in mm with --depth-png),\ntransforms.json (nerfstudio / instant-ngp), mesh.ply and mesh.glb, flythrough.gif, run.json\n(config, per-stage timings, map statistics) and snapshot.bin (for --resume)."
+    after_help = "Examples:\n  sgam generate                                  # 100 steps from a synthetic seed\n  sgam generate --steps 900 --out runs/big       # the paper's 30x30 zig-zag world\n  sgam generate --resume runs/big                # continue after an interruption\n  sgam generate --seed-template ../shared/data/sgam-clevr-template\n  sgam generate --seed-rgb im.png --seed-depth d.png --intrinsics 500,500,320,240 \\\n      --trajectory line --step 0.1 --steps 50\n\nOutputs in the run folder: rgb/NNNNN.png, depth/NNNNN.npy (+ .png in mm with --depth-png),\nguidance/NNNNN.png (with --guidance-png), transforms.json (nerfstudio / instant-ngp), mesh.ply and mesh.glb, flythrough.gif, run.json\n(config, per-stage timings, map statistics) and snapshot.bin (for --resume)."
 )]
 pub struct GenerateArgs {
     /// Run folder (default: runs/world-NNN, the next free number).

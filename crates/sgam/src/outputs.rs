@@ -94,6 +94,15 @@ impl RunObserver for CliObserver<'_> {
         if outputs.depth_png {
             write_depth_png(self.dir, i, &generator.keyframes.frame(i)?.depth_m).map_err(output_error)?;
         }
+        if outputs.guidance_png {
+            let fin = generator.keyframes.frame(i)?;
+            if let Some((guidance, raw)) = generator.last_guidance() {
+                let panel = sgam_pipeline::guidance_view::step_panel(guidance, raw, &fin);
+                let dir = self.dir.join("guidance");
+                std::fs::create_dir_all(&dir).map_err(|e| sgam_io::IoError::Io { path: dir.clone(), source: e })?;
+                sgam_io::write_rgb_png(&dir.join(format!("{i:05}.png")), &panel)?;
+            }
+        }
         if outputs.mesh_every > 0 && i.is_multiple_of(outputs.mesh_every) {
             sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &generator.map.extract_mesh())?;
         }

@@ -73,6 +73,12 @@ pub struct ContextArgs {
     /// Seed of the pairs, the initialisation, batch order and reveals.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Share of the training pairs' generator runs (0-1) that grow their map with the starting
+    /// model's own completions (generation's default sampling) instead of the truth: the
+    /// guidance then holds the model's earlier inventions, as in generation, and the target is
+    /// still the true frame. Validation pairs stay the oracle's.
+    #[arg(long, default_value_t = 0.0)]
+    pub closed_loop: f32,
     /// Checkpoint every N steps.
     #[arg(long, default_value_t = 250)]
     pub ckpt_every: u64,
@@ -100,6 +106,9 @@ fn validate(a: &ContextArgs) -> Result<()> {
     }
     if !(a.lr.is_finite() && a.lr > 0.0 && a.lr < 1.0) {
         bail!("--lr {} must be a positive number below 1", a.lr);
+    }
+    if !(a.closed_loop.is_finite() && (0.0..=1.0).contains(&a.closed_loop)) {
+        bail!("--closed-loop {} must be a share between 0 and 1", a.closed_loop);
     }
     if !(a.whole_hole.is_finite() && (0.0..=1.0).contains(&a.whole_hole)) {
         bail!("--whole-hole {} must be a share between 0 and 1", a.whole_hole);
@@ -176,15 +185,14 @@ pub fn run(a: &ContextArgs) -> Result<()> {
     // the frozen encoder of the model being extended gives the features; the feature model
     // (the stage-1 encoder) gives the target codes, as for `sgam train sampler`
     let (target_model, target_config) = sgam_model::refiner::load_model_bytes(FEATURE_MODEL, None, &device)?;
-    let (model, model_config) = sgam_model::refiner::load_model_bytes(
-        &sgam_model::params::to_safetensors_bytes(
-            &trainer.weights(),
-            sgam_model::params::WeightPrecision::F32,
-            Some(sgam_model::refiner::weight_metadata(&trainer.model_config)?),
-        )?,
-        None,
-        &device,
+    // the model as it starts (its frozen encoder gives the features; closed-loop recording runs
+    // it as generation does)
+    let start_bytes = sgam_model::params::to_safetensors_bytes(
+        &trainer.weights(),
+        sgam_model::params::WeightPrecision::F32,
+        Some(sgam_model::refiner::weight_metadata(&trainer.model_config)?),
     )?;
+    let (model, model_config) = sgam_model::refiner::load_model_bytes(&start_bytes, None, &device)?;
     if !(a.crop as usize).is_multiple_of(model_config.downsample_factor()) {
         bail!(
             "--crop {} must be a multiple of the model's downsampling factor {}",
@@ -198,6 +206,11 @@ pub fn run(a: &ContextArgs) -> Result<()> {
         crop: a.crop,
         scenes: a.scenes,
         seed: a.seed,
+        closed_loop: (a.closed_loop > 0.0).then(|| sgam_pipeline::codepairs::ClosedLoop {
+            share: a.closed_loop,
+            weights: &start_bytes,
+            options: sgam_pipeline::settings::SamplingSettings::default().refiner_options(),
+        }),
     };
     let record = |n: usize, stream: u64, what: &str| -> Result<Vec<ContextPair>> {
         let pairs =

@@ -141,6 +141,8 @@ pub(crate) struct PairSpec<'a> {
     pub crop: u32,
     pub scenes: u64,
     pub seed: u64,
+    /// Closed-loop recording of the training pairs (`sgam train context --closed-loop`).
+    pub closed_loop: Option<sgam_pipeline::codepairs::ClosedLoop<'a>>,
 }
 
 /// `n` training pairs of stream `stream`, recorded from the generator with the oracle on
@@ -156,6 +158,8 @@ pub(crate) fn recorded_pairs(
     target: (&sgam_model::VqModel, &sgam_model::ModelConfig),
     resuming: bool,
 ) -> Result<Vec<sgam_model::generative::CodePair>> {
+    // validation pairs stay the oracle's: one fixed yardstick across runs
+    let closed_loop = spec.closed_loop.filter(|_| stream == 1);
     let key = sgam_pipeline::codepairs::CacheKey {
         version: 2, // 2: pairs from all six trajectory shapes
         pairs: n,
@@ -164,6 +168,7 @@ pub(crate) fn recorded_pairs(
         scenes: spec.scenes,
         seed: spec.seed,
         stream,
+        closed_loop: closed_loop.map_or(0.0, |c| c.share),
     };
     let path = spec.run.join(format!("pairs-{stream}.bin"));
     if path.exists() {
@@ -171,7 +176,7 @@ pub(crate) fn recorded_pairs(
             Some(p) => return Ok(p),
             None if resuming => bail!(
                 "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
-                 --steps-per-run / --seed; resume with the options it started with",
+                 --steps-per-run / --seed / --closed-loop; resume with the options it started with",
                 path.display()
             ),
             None => eprintln!("{}: recorded with other options; recording again", path.display()),
@@ -180,10 +185,16 @@ pub(crate) fn recorded_pairs(
     let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
     rng.set_stream(stream);
     let pb = progress::bar(n as u64, what);
-    let pairs =
-        sgam_pipeline::codepairs::collect(n, spec.steps_per_run, spec.crop, spec.scenes, target, &mut rng, &mut |k| {
-            pb.set_position(k as u64)
-        })?;
+    let pairs = sgam_pipeline::codepairs::collect(
+        n,
+        spec.steps_per_run,
+        spec.crop,
+        spec.scenes,
+        target,
+        closed_loop,
+        &mut rng,
+        &mut |k| pb.set_position(k as u64),
+    )?;
     pb.finish_and_clear();
     sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
     Ok(pairs)
@@ -286,7 +297,14 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     // pairs: recorded from the generator with the oracle, deterministic from --seed
     // recorded once per run folder and cached there (RUN/pairs-*.bin), so a restart or a resume
     // trains at once
-    let spec = PairSpec { run: &a.run, steps_per_run: a.steps_per_run, crop: a.crop, scenes: a.scenes, seed: a.seed };
+    let spec = PairSpec {
+        run: &a.run,
+        steps_per_run: a.steps_per_run,
+        crop: a.crop,
+        scenes: a.scenes,
+        seed: a.seed,
+        closed_loop: None,
+    };
     let record = |n: usize, stream: u64, what: &str| {
         recorded_pairs(&spec, n, stream, what, (&target_model, &target_config), resuming)
     };
