@@ -44,10 +44,7 @@ use sgam_core::{Intrinsics, RgbdFrame};
 use crate::config::ModelConfig;
 use crate::model::VqModel;
 use crate::packing::{missing_cells, pack_input, unpack};
-use crate::params::{
-    from_safetensors_bytes, load_named, named_tensors, param_id_for_path, save_safetensors, write_atomic, NamedTensor,
-    WeightPrecision,
-};
+use crate::params::{load_named, named_tensors, param_id_for_path, write_atomic, NamedTensor, WeightPrecision};
 use crate::quantize::{argmin, select_codes, squared_distances, to_host, Sampling};
 use crate::ModelError;
 
@@ -712,21 +709,16 @@ impl CodeTrainer {
         Ok(r)
     }
 
-    /// Writes the checkpoint folder `run_dir/ckpt` atomically (see the module docs), with
-    /// `model.safetensors` carrying the current `tau` in its embedded config.
+    /// Commits the checkpoint folder `run_dir/ckpt` as a whole, with a manifest of sizes and
+    /// CRC-32s ([`crate::checkpoint::commit_folder`]); `model.safetensors` carries the current
+    /// `tau` in its embedded config.
     pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
-        let (new, cur, old) = (run_dir.join("ckpt.new"), run_dir.join("ckpt"), run_dir.join("ckpt.old"));
-        if new.exists() {
-            std::fs::remove_dir_all(&new).map_err(|e| ModelError::io(&new, e))?;
-        }
-        std::fs::create_dir_all(&new).map_err(|e| ModelError::io(&new, e))?;
         let config = self.exported_config()?;
         let meta = crate::refiner::weight_metadata(&config)?;
-        save_safetensors(&self.model, &new.join("model.safetensors"), WeightPrecision::F32, Some(meta))?;
-        let bytes = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
-        write_atomic(&new.join("optim.bpk"), &bytes)?;
-        let bytes = self.optim_tau.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
-        write_atomic(&new.join("optim_tau.bpk"), &bytes)?;
+        let weights =
+            crate::params::to_safetensors_bytes(&named_tensors(&self.model), WeightPrecision::F32, Some(meta))?;
+        let optim = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
+        let optim_tau = self.optim_tau.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
         let (rng_seed, rng_stream, rng_word_pos) = crate::checkpoint::rng_position(&self.rng);
         let state = CodeState {
             version: STATE_VERSION,
@@ -739,47 +731,32 @@ impl CodeTrainer {
             rng_word_pos,
         };
         let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
-        write_atomic(&new.join("state.json"), &json)?;
-        if cur.exists() {
-            if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(|e| ModelError::io(&old, e))?;
-            }
-            std::fs::rename(&cur, &old).map_err(|e| ModelError::io(&cur, e))?;
-        }
-        std::fs::rename(&new, &cur).map_err(|e| ModelError::io(&new, e))?;
-        if old.exists() {
-            std::fs::remove_dir_all(&old).map_err(|e| ModelError::io(&old, e))?;
-        }
+        crate::checkpoint::commit_folder(run_dir, "ckpt", |dir| {
+            write_atomic(&dir.join("model.safetensors"), &weights)?;
+            write_atomic(&dir.join("optim.bpk"), &optim)?;
+            write_atomic(&dir.join("optim_tau.bpk"), &optim_tau)?;
+            write_atomic(&dir.join("state.json"), &json)
+        })?;
         Ok(())
     }
 
-    /// The checkpoint folder to resume from: `run_dir/ckpt`, or `ckpt.old` when a save was
-    /// interrupted between its two renames. `None` when the run has no checkpoint.
+    /// The committed checkpoint folder to resume from (`run_dir/ckpt`, or `ckpt.old` when a
+    /// commit was interrupted between its two renames); `None` when the run has none.
     pub fn checkpoint_dir(run_dir: &Path) -> Option<std::path::PathBuf> {
-        [run_dir.join("ckpt"), run_dir.join("ckpt.old")].into_iter().find(|p| p.join("state.json").exists())
+        crate::checkpoint::committed_folder(run_dir, "ckpt")
     }
 
-    /// Resumes from `run_dir`'s checkpoint; `steps` (and `lr_decay_from` when given) override
-    /// the stored values.
+    /// Resumes from `run_dir`'s checkpoint (manifest verified first); `steps` (and
+    /// `lr_decay_from` when given) override the stored values.
     pub fn resume(run_dir: &Path, steps: Option<u64>, lr_decay_from: Option<u64>) -> Result<Self, ModelError> {
         let dir = Self::checkpoint_dir(run_dir)
-            .ok_or_else(|| ModelError::checkpoint(run_dir, "no checkpoint (ckpt/state.json)"))?;
-        let path = dir.join("state.json");
-        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
-        let state: CodeState = serde_json::from_slice(&bytes)
-            .map_err(|e| ModelError::checkpoint(&path, format!("not a generative stage-2 state: {e}")))?;
-        if state.version != STATE_VERSION {
-            return Err(ModelError::checkpoint(
-                &path,
-                format!("state version {} (this build reads {STATE_VERSION})", state.version),
-            ));
-        }
+            .ok_or_else(|| ModelError::checkpoint(run_dir, "no committed checkpoint (ckpt/ with a manifest)"))?;
+        crate::checkpoint::verify_folder(&dir)?;
+        let (state, tensors): (CodeState, _) =
+            crate::checkpoint::read_trainer_state(&dir, "generative stage-2", STATE_VERSION)?;
         if !state.log_tau.is_finite() {
-            return Err(ModelError::checkpoint(&path, format!("log_tau is {}", state.log_tau)));
+            return Err(ModelError::checkpoint(&dir.join("state.json"), format!("log_tau is {}", state.log_tau)));
         }
-        let weights = dir.join("model.safetensors");
-        let wbytes = std::fs::read(&weights).map_err(|e| ModelError::io(&weights, e))?;
-        let tensors = from_safetensors_bytes(&wbytes).map_err(|e| e.in_file(&weights))?.0;
         let mut train_config = state.train_config;
         if let Some(s) = steps {
             train_config.steps = s;
@@ -790,12 +767,9 @@ impl CodeTrainer {
         let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
         let optim = dir.join("optim.bpk");
         t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
-        // (checkpoints of the first training run have no optim_tau.bpk: tau's Adam restarts)
         let optim_tau = dir.join("optim_tau.bpk");
-        if optim_tau.exists() {
-            t.optim_tau =
-                adam().load(&optim_tau).map_err(|e| ModelError::checkpoint(&optim_tau, format!("cannot read: {e}")))?;
-        }
+        t.optim_tau =
+            adam().load(&optim_tau).map_err(|e| ModelError::checkpoint(&optim_tau, format!("cannot read: {e}")))?;
         t.temperature = CodeTemperature::from_log(state.log_tau, &t.device).train();
         t.step = state.step;
         t.rng = crate::checkpoint::rng_at(state.rng_seed, state.rng_stream, state.rng_word_pos);

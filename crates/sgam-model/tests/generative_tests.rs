@@ -175,9 +175,10 @@ fn two_level_iterative_sampling_commits_every_missing_cell_once_and_keeps_observ
     assert_eq!(plain.len(), cfg.n_embed);
     let (w, h) = (32u32, 32u32);
     let f = frame(w, h, 4);
-    // a 20 x 12 pixel hole: 5 x 3 = 15 missing cells; ceil(15 / 5) = 3 passes
+    // a 20 x 12 pixel hole: 5 x 3 = 15 missing cells; ceil(15 / 5) = 3 passes of 5
     let missing: Vec<bool> = (0..w * h).map(|p| (4..24).contains(&(p % w)) && (8..20).contains(&(p / w))).collect();
     assert_passes_commit_each_cell_once(&mut r, &f, &missing, 15, 3);
+    assert_eq!(r.trace().passes.iter().map(Vec::len).collect::<Vec<_>>(), [5, 5, 5]);
 }
 
 #[test]
@@ -222,7 +223,17 @@ fn assert_passes_commit_each_cell_once(
     let expected: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
     assert_eq!(expected.len(), cells);
     assert_eq!(trace.passes.len(), passes, "{:?}", trace.passes);
-    assert!(trace.passes.iter().all(|p| !p.is_empty()));
+    // the MaskGIT schedule: pass p commits ceil(open / (passes - p)) of the cells still open,
+    // the last pass all of them
+    let mut open = cells;
+    let mut schedule = Vec::new();
+    for p in 0..passes {
+        let n = if p + 1 == passes { open } else { open.div_ceil(passes - p) };
+        schedule.push(n);
+        open -= n;
+    }
+    let committed: Vec<usize> = trace.passes.iter().map(Vec::len).collect();
+    assert_eq!(committed, schedule, "cells committed per pass");
     let mut all: Vec<usize> = trace.passes.concat();
     all.sort_unstable();
     assert_eq!(all, expected, "every missing cell committed exactly once");
@@ -248,9 +259,25 @@ fn iterative_sampling_commits_every_missing_cell_once_and_keeps_observed_pixels(
     let mut r = VqRefiner::new(model, cfg.clone(), options, device);
     let (w, h) = (32u32, 32u32);
     let f = frame(w, h, 9);
-    // a 12 x 16 pixel hole: 3 x 4 = 12 missing cells of 4 x 4 pixels; ceil(12 / 5) = 3 passes
+    // a 12 x 16 pixel hole: 3 x 4 = 12 missing cells of 4 x 4 pixels; ceil(12 / 5) = 3 passes,
+    // spread evenly: ceil(12 / 3) = 4, ceil(8 / 2) = 4, the last 4 (not 5, 5, 2)
     let missing: Vec<bool> = (0..w * h).map(|p| (8..20).contains(&(p % w)) && (12..28).contains(&(p / w))).collect();
     assert_passes_commit_each_cell_once(&mut r, &f, &missing, 12, 3);
+    assert_eq!(r.trace().passes.iter().map(Vec::len).collect::<Vec<_>>(), [4, 4, 4]);
+    // 13 cells (the cell below the hole's left column too): ceil(13 / 5) = 3 passes of
+    // ceil(13 / 3) = 5, ceil(8 / 2) = 4 and the last 4
+    let mut thirteen = missing.clone();
+    for y in 28..32 {
+        for x in 8..12 {
+            thirteen[(y * w + x) as usize] = true;
+        }
+    }
+    assert_passes_commit_each_cell_once(&mut r, &f, &thirteen, 13, 3);
+    assert_eq!(r.trace().passes.iter().map(Vec::len).collect::<Vec<_>>(), [5, 4, 4]);
+    // max_passes caps the passes: 12 cells at 2 per pass would take 6; at most 4, of 3 each
+    r.set_options(RefinerOptions { cells_per_pass: 2, ..options });
+    assert_passes_commit_each_cell_once(&mut r, &f, &missing, 12, 4);
+    assert_eq!(r.trace().passes.iter().map(Vec::len).collect::<Vec<_>>(), [3, 3, 3, 3]);
     // argmin is one pass and deterministic
     r.set_options(RefinerOptions { sampling: Sampling::Argmin, ..RefinerOptions::default() });
     let a = r.complete_at(&f, &missing, Some(&Intrinsics::from_fov_x(w, h, 1.0))).unwrap();
@@ -425,6 +452,21 @@ fn checkpoints_resume_bit_identically_and_keep_the_decoder_frozen() {
         a.step_on(&pairs[i..i + 2]).unwrap();
     }
     a.save(dir.path()).unwrap();
+    // the checkpoint is committed with a manifest, like the other trainers'; a corrupted copy of
+    // it is refused naming the file, not resumed
+    let manifest = sgam_model::checkpoint::verify_folder(&dir.path().join("ckpt")).unwrap();
+    let listed: Vec<&str> = manifest.files.keys().map(String::as_str).collect();
+    assert_eq!(listed, ["model.safetensors", "optim.bpk", "optim_tau.bpk", "state.json"]);
+    let bad = tempfile::tempdir().unwrap();
+    std::fs::create_dir(bad.path().join("ckpt")).unwrap();
+    for name in listed.iter().chain(&["manifest.json"]) {
+        std::fs::copy(dir.path().join("ckpt").join(name), bad.path().join("ckpt").join(name)).unwrap();
+    }
+    let mut bytes = std::fs::read(bad.path().join("ckpt/optim_tau.bpk")).unwrap();
+    bytes[0] ^= 1;
+    std::fs::write(bad.path().join("ckpt/optim_tau.bpk"), bytes).unwrap();
+    let err = CodeTrainer::resume(bad.path(), None, None).unwrap_err().to_string();
+    assert!(err.contains("optim_tau.bpk") && err.contains("CRC-32"), "{err}");
     let mut b = CodeTrainer::resume(dir.path(), None, None).unwrap();
     assert_eq!(b.step, 3);
     for i in 0..2 {
