@@ -94,6 +94,9 @@ pub fn read_clevr_template(dir: &Path) -> Result<SeedImage, IoError> {
 pub fn read_google_earth_seed(dir: &Path) -> Result<SeedImage, IoError> {
     let rgb = dir.join("im_00000.png");
     let depth = dir.join("dm_00000.npy");
+    if !rgb.exists() {
+        refuse_seed_collection(dir)?;
+    }
     let colour = read_rgb(&rgb)?;
     let mut depth_m = crate::read_npy_f32(&depth)?;
     sanitize_float_depth(&depth, &mut depth_m)?;
@@ -104,4 +107,31 @@ pub fn read_google_earth_seed(dir: &Path) -> Result<SeedImage, IoError> {
     let k = Intrinsics::try_new(512, 512, f, f, 256.0, 256.0).map_err(|e| IoError::invalid(&rgb, e.to_string()))?;
     let k = k.resized(w, h);
     Ok(SeedImage { camera: Camera::new(k, Rigid3::IDENTITY), frame: RgbdFrame { colour, depth_m } })
+}
+
+/// A folder of Google Earth seeds (`seed0/`, `seed1/`, ... each with `im_00000.png` and
+/// `dm_00000.npy`) given where
+/// one seed's folder was expected: an error naming the seeds to choose from.
+fn refuse_seed_collection(dir: &Path) -> Result<(), IoError> {
+    let Ok(items) = std::fs::read_dir(dir) else { return Ok(()) };
+    let mut seeds: Vec<String> = items
+        .flatten()
+        .filter(|e| e.path().join("im_00000.png").is_file() && e.path().join("dm_00000.npy").is_file())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    if seeds.is_empty() {
+        return Ok(());
+    }
+    seeds.sort();
+    let shown = seeds.iter().take(5).cloned().collect::<Vec<_>>().join(", ");
+    let more = if seeds.len() > 5 { ", ..." } else { "" };
+    Err(IoError::invalid(
+        dir,
+        format!(
+            "holds {} Google Earth seed{} ({shown}{more}), not a seed itself: pass one of them, e.g. {}",
+            seeds.len(),
+            if seeds.len() == 1 { "" } else { "s" },
+            dir.join(&seeds[0]).display()
+        ),
+    ))
 }

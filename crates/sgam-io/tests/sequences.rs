@@ -315,6 +315,9 @@ fn seeds_from_rgbd_files_template_and_google_earth_layouts() {
     write_rgb_png(&gdir.join("im_00000.png"), &f.colour).unwrap();
     write_npy_f32(&gdir.join("dm_00000.npy"), &depth).unwrap();
     let s = read_google_earth_seed(&gdir).unwrap();
+    // the folder of seeds (the authors' layout) instead of one seed: the error lists the seeds
+    let e = read_google_earth_seed(dir.path()).unwrap_err().to_string();
+    assert!(e.contains("holds 1 Google Earth seed (seed0)") && e.contains(&gdir.display().to_string()), "{e}");
     assert_eq!(s.frame.depth_m.data[3], 0.0);
     assert_eq!(s.frame.depth_m.data[4], depth.data[4]);
     let k = s.camera.intrinsics;
