@@ -60,7 +60,9 @@ fn summary(d: &[f32], max: f32) -> serde_json::Value {
 pub fn run(cmd: EvalCommand) -> Result<()> {
     match cmd {
         EvalCommand::World(a) => {
-            let v = crate::eval_world::evaluate(&a)?;
+            let mut v = crate::eval_world::evaluate(&a)?;
+            // scripts reading the JSON see the same warning the text gives
+            v["warning"] = crate::eval_report::too_short(&v).map_or(serde_json::Value::Null, |w| w.trim().into());
             if !a.json {
                 eprint!("{}", crate::eval_report::summary_text(&v));
             }

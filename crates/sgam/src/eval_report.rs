@@ -2,8 +2,34 @@
 //! table a person reads (ratios to the oracle, the scene metrics, KID, loop consistency, object
 //! shapes).
 
+/// Fewest objects (in each of the generated and the oracle's worlds, all seeds) and regions
+/// below which the report gives no bar verdicts: medians and densities of a handful of objects
+/// say nothing.
+pub const MIN_OBJECTS_TO_JUDGE: f64 = 10.0;
+/// See [`MIN_OBJECTS_TO_JUDGE`].
+pub const MIN_REGIONS_TO_JUDGE: u64 = 4;
+
+/// Why `v`'s worlds are too small for its statistics, or `None` when they are not.
+pub fn too_short(v: &serde_json::Value) -> Option<String> {
+    let objects = |w: &str| {
+        let g = &v[w];
+        (g["objects_per_100m2"].as_f64().unwrap_or(0.0) * g["new_area_m2"].as_f64().unwrap_or(0.0) / 100.0).round()
+    };
+    let (og, oo) = (objects("generated"), objects("oracle"));
+    let regions = v["regions"]["generated"].as_u64().unwrap_or(0).min(v["regions"]["oracle"].as_u64().unwrap_or(0));
+    (og < MIN_OBJECTS_TO_JUDGE || oo < MIN_OBJECTS_TO_JUDGE || regions < MIN_REGIONS_TO_JUDGE).then(|| {
+        format!(
+            "warning: these worlds are too small for their statistics ({og} generated and {oo} true objects, \
+             {regions} regions; at least {MIN_OBJECTS_TO_JUDGE} objects each and {MIN_REGIONS_TO_JUDGE} regions are \
+             needed): no bar verdicts; grow longer worlds (--steps 400, the default) or more seeds\n"
+        )
+    })
+}
+
 /// Plain-text summary of an [`evaluate`] result.
 pub fn summary_text(v: &serde_json::Value) -> String {
+    let short = too_short(v);
+    let bar = |b: &'static str| if short.is_some() { "" } else { b };
     let row = |name: &str, key: &str, unit: &str| {
         format!(
             "  {name:<28} {:>10.3} {:>10.3} {:>8.2}x{unit}\n",
@@ -23,13 +49,16 @@ pub fn summary_text(v: &serde_json::Value) -> String {
         "oracle",
         "ratio"
     );
+    if let Some(w) = &short {
+        s.insert_str(0, w);
+    }
     s += &row("new area (m2)", "new_area_m2", "");
-    s += &row("objects per 100 m2", "objects_per_100m2", "   (bar 0.5-1.5x)");
-    s += &row("median object footprint (m2)", "median_object_area_m2", "   (bar <= 2x)");
+    s += &row("objects per 100 m2", "objects_per_100m2", bar("   (bar 0.5-1.5x)"));
+    s += &row("median object footprint (m2)", "median_object_area_m2", bar("   (bar <= 2x)"));
     s += &row("p90 object footprint (m2)", "p90_object_area_m2", "");
     s += &row("object cover", "object_cover", "");
-    s += &row("object saturation", "object_saturation", "   (bar >= 0.6x)");
-    s += &row("ground RMS (mm)", "ground_rms_mm", "   (bar <= 2x)");
+    s += &row("object saturation", "object_saturation", bar("   (bar >= 0.6x)"));
+    s += &row("ground RMS (mm)", "ground_rms_mm", bar("   (bar <= 2x)"));
     s += &shape_rows(v);
     let sc = &v["scene"];
     s += &format!(
@@ -93,4 +122,34 @@ fn shape_rows(v: &serde_json::Value) -> String {
         s += &format!("    {seed:<26} {} | {}\n", triple(&p["generated"]), triple(&p["oracle"]));
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn result(objects_per_100m2: f64, area: f64, regions: u64) -> serde_json::Value {
+        let world = serde_json::json!({ "objects_per_100m2": objects_per_100m2, "new_area_m2": area });
+        serde_json::json!({
+            "generated": world, "oracle": world,
+            "regions": { "generated": regions, "oracle": regions, "size_m": 5.0 },
+        })
+    }
+
+    #[test]
+    fn a_world_too_small_for_its_statistics_gets_a_warning_and_no_bar_verdicts() {
+        // 2 objects in 100 m2, one region: the issue's short run
+        let short = result(2.0, 100.0, 1);
+        let w = too_short(&short).expect("a 2-object world is too short");
+        assert!(w.contains("2 generated and 2 true objects") && w.contains("1 regions"), "{w}");
+        let text = summary_text(&short);
+        assert!(text.starts_with("warning:") && !text.contains("(bar"), "{text}");
+        // 40 objects over 400 m2 in 16 regions: judged, with bars
+        let long = result(10.0, 400.0, 16);
+        assert_eq!(too_short(&long), None);
+        let text = summary_text(&long);
+        assert!(!text.contains("warning") && text.contains("(bar 0.5-1.5x)"), "{text}");
+        // enough objects but too few regions is still too short
+        assert!(too_short(&result(10.0, 400.0, 3)).is_some());
+    }
 }
