@@ -45,9 +45,51 @@ fn the_oracle_judged_against_itself_is_identical_and_the_null_fill_is_not() {
         assert!(world.join("run.json").exists() && world.join("rgb").exists(), "{}", world.display());
         assert!(!world.join("snapshot.bin").exists() && !world.join("map.bin").exists(), "{}", world.display());
     }
-    // the plain-text summary names the bars
+    // a 24-step world is too small to judge: the summary says so and gives no bar verdicts
+    // (eval_report's unit test shows the bars of a world large enough)
+    assert!(n["warning"].as_str().is_some_and(|w| w.contains("too small")), "{n}");
     let text = ok(&[&common_args[..8], &["--refiner", "null"]].concat());
-    assert!(text.contains("objects per 100 m2") && text.contains("(bar 0.5-1.5x)"), "{text}");
+    assert!(text.contains("objects per 100 m2") && text.contains("warning: these worlds are too small"), "{text}");
+    assert!(!text.contains("(bar"), "{text}");
+}
+
+#[test]
+fn eval_world_grows_its_model_world_with_the_within_temperature() {
+    // `eval world` resolves its sampling options the way `generate` does (whose test shows the
+    // option changes the draws): the model's world, and its loop run, are grown with the
+    // within-class temperature given, the oracle's without any refiner options
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().to_str().unwrap();
+    let v = eval_json(&[
+        "eval",
+        "world",
+        "--seeds",
+        "1",
+        "--steps",
+        "10",
+        "--within-temperature",
+        "0.25",
+        "--out",
+        out,
+        "--json",
+    ]);
+    assert_eq!(v["within_temperature"].as_f64(), Some(0.25), "{v}");
+    let seed_dir = std::path::Path::new(out).join("seed-1000000");
+    let mut grown: Vec<String> =
+        std::fs::read_dir(&seed_dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    grown.sort();
+    let model: Vec<&String> = grown.iter().filter(|n| n.starts_with("model")).collect();
+    assert_eq!(model.len(), 2, "the model's world and its loop run: {grown:?}");
+    for name in model {
+        let run: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(seed_dir.join(name).join("run.json")).unwrap()).unwrap();
+        let options = &run["config"]["refiner"]["options"];
+        let within = options["within_class_temperature"].as_f64().unwrap();
+        assert!((within - 0.25).abs() < 1e-6, "{name}: {options}");
+    }
+    let oracle: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(seed_dir.join("oracle").join("run.json")).unwrap()).unwrap();
+    assert_eq!(oracle["config"]["refiner"]["kind"], "oracle");
 }
 
 #[test]
