@@ -31,19 +31,54 @@ pub enum Preset {
 #[derive(Debug, Subcommand)]
 pub enum TrainCommand {
     /// Stage 1: autoencode clean RGB-D (codebook, encoder and decoder all train).
+    #[command(
+        mut_arg("steps", |a| a.default_value("20000").required(false)),
+        mut_arg("batch", |a| a.default_value("4").required(false)),
+        mut_arg("lr", |a| a.default_value("0.0002").required(false)),
+        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
+        mut_arg("scenes", |a| a.default_value("512").required(false))
+    )]
     Stage1(TrainArgs),
     /// Stage 2: fine-tune the encoder and mask conv on incomplete -> complete pairs built by the
     /// generator's own render + warp path; codebook, quant convs and decoder frozen.
+    #[command(
+        mut_arg("steps", |a| a.default_value("20000").required(false)),
+        mut_arg("batch", |a| a.default_value("4").required(false)),
+        mut_arg("lr", |a| a.default_value("0.0002").required(false)),
+        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
+        mut_arg("scenes", |a| a.default_value("512").required(false))
+    )]
     Stage2(TrainArgs),
     /// Generative stage 2: train the encoder to predict a distribution over codebook indices
     /// (cross-entropy against the codes the frozen encoder gives the clean target), on pairs
     /// recorded from the generator itself running with the oracle on training scenes.
+    #[command(
+        mut_arg("steps", |a| a.default_value("12000").required(false)),
+        mut_arg("batch", |a| a.default_value("8").required(false)),
+        mut_arg("lr", |a| a.default_value("0.0003").required(false)),
+        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
+        mut_arg("scenes", |a| a.default_value("100000").required(false))
+    )]
     Sampler(crate::train_sampler::SamplerArgs),
     /// Scene-wide context: a transformer over the code grid that completes a hole knowing all of
     /// it (MaskGIT-style, on the frozen sampler's features); everything else stays.
+    #[command(
+        mut_arg("steps", |a| a.default_value("8000").required(false)),
+        mut_arg("batch", |a| a.default_value("16").required(false)),
+        mut_arg("lr", |a| a.default_value("0.0005").required(false)),
+        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
+        mut_arg("scenes", |a| a.default_value("100000").required(false))
+    )]
     Context(crate::train_context::ContextArgs),
     /// Fine-tune the decoder on whole frames (the codes, encoder and codebook stay): a decoder
     /// trained on crops cannot tell how far the ground is at a frame's border.
+    #[command(
+        mut_arg("steps", |a| a.default_value("1200").required(false)),
+        mut_arg("batch", |a| a.default_value("4").required(false)),
+        mut_arg("lr", |a| a.default_value("0.0001").required(false)),
+        mut_arg("ckpt_every", |a| a.default_value("100").required(false)),
+        mut_arg("scenes", |a| a.default_value("100000").required(false))
+    )]
     Decoder(crate::train_decoder::DecoderArgs),
     /// Write a run's weights as a shippable model file (f16 by default, config embedded).
     #[command(
@@ -112,9 +147,9 @@ fn export(a: &ExportArgs) -> Result<()> {
     after_help = "Examples:\n  sgam train stage1 --run runs/train-s1 --steps 20000\n  sgam train stage2 --run runs/train-s2 --init runs/train-s1/model.safetensors --steps 10000\n\nRe-running the same command resumes from the run folder's last checkpoint, RUN/ckpt (weights,\noptimizer state, step, RNG; committed as a whole and verified on resume); only --steps,\n--lr-decay-from, --ckpt-every and --val-every may change. RUN/model.safetensors holds the last\ncheckpoint's weights. Validation strips (input | output | target) go to RUN/val/."
 )]
 pub struct TrainArgs {
-    /// Run folder (checkpoints, config.json, validation images).
-    #[arg(long)]
-    pub run: PathBuf,
+    /// The run folder, steps, batch, learning rate, checkpoints, scenes and seed.
+    #[command(flatten)]
+    pub common: crate::train_common::TrainLoopArgs,
     /// Architecture preset (new runs only).
     #[arg(long, value_enum, default_value_t = Preset::Compact)]
     pub preset: Preset,
@@ -122,23 +157,9 @@ pub struct TrainArgs {
     /// config.json has this form); overrides --preset. New runs only.
     #[arg(long, value_name = "JSON")]
     pub model_config: Option<PathBuf>,
-    /// Total optimisation steps (a resumed run continues up to this).
-    #[arg(long, default_value_t = 20_000)]
-    pub steps: u64,
-    /// Images per step.
-    #[arg(long, default_value_t = 4)]
-    pub batch: usize,
     /// Random crop size in pixels (crops of 256x256 views).
     #[arg(long, default_value_t = 128)]
     pub crop: u32,
-    /// Adam learning rate.
-    #[arg(long, default_value_t = 2e-4)]
-    pub lr: f64,
-    /// Decay the learning rate along a half cosine from this step to 5 % of --lr at --steps
-    /// (default: constant). Also applies when resuming: `--steps 9000 --lr-decay-from 6000`
-    /// finishes a run with a decayed tail.
-    #[arg(long, value_name = "STEP")]
-    pub lr_decay_from: Option<u64>,
     /// Weight of the perceptual term (L1 between image gradients). At 1.0 it slowed a fixed-batch
     /// fit from 32 dB to 15 dB in 300 steps; 0.1 keeps its edge sharpening without that.
     #[arg(long, default_value_t = 0.1)]
@@ -159,18 +180,9 @@ pub struct TrainArgs {
     /// Step at which the PatchGAN discriminator starts.
     #[arg(long, default_value_t = 10_000)]
     pub disc_start: u64,
-    /// Checkpoint every N steps.
-    #[arg(long, default_value_t = 250)]
-    pub ckpt_every: u64,
     /// Validate (and write a strip) every N steps.
     #[arg(long, default_value_t = 250)]
     pub val_every: u64,
-    /// Training scenes: seeds 0..N (held-out evaluation seeds start at 1000000).
-    #[arg(long, default_value_t = 512)]
-    pub scenes: u64,
-    /// Seed of weights and batches.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
     /// Weights to start from (stage 2: the stage-1 model.safetensors).
     #[arg(long)]
     pub init: Option<PathBuf>,
@@ -219,20 +231,13 @@ impl TrainArgs {
     /// `model`'s downsampling factor within the 256-pixel views); errors name the option and
     /// the accepted range.
     pub fn validate(&self, stage: Stage, model: &ModelConfig) -> Result<()> {
-        in_range("--steps", self.steps, 1..=10_000_000)?;
-        in_range("--batch", self.batch, 1..=sgam_model::train::MAX_BATCH)?;
+        self.common.validate()?;
         let f = model.downsample_factor() as u32;
         if !(f..=VIEW_RES).contains(&self.crop) || !self.crop.is_multiple_of(f) {
             bail!(
                 "--crop {} is out of range: accepted multiples of the model's downsampling factor {f} in {f}..={VIEW_RES}",
                 self.crop
             );
-        }
-        if !(self.lr.is_finite() && self.lr > 0.0 && self.lr <= 1.0) {
-            bail!("--lr {} is out of range: accepted a positive number up to 1", self.lr);
-        }
-        if let Some(from) = self.lr_decay_from {
-            in_range("--lr-decay-from", from, 0..=self.steps.saturating_sub(1))?;
         }
         in_range("--perceptual-weight", self.perceptual_weight, 0.0..=1000.0)?;
         if let Some(w) = self.missing_weight {
@@ -246,7 +251,6 @@ impl TrainArgs {
         if stage == Stage::Two && self.warmup_no_quant > 0 {
             bail!("--warmup-no-quant is stage 1's (the codebook is frozen in stage 2, which would ignore it)");
         }
-        in_range("--scenes", self.scenes, 1..=HELD_OUT_SEED_BASE - 1)?;
         Ok(())
     }
 }
@@ -299,42 +303,45 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
     if let Some(init) = &args.init {
         crate::guard::check_input_file("--init", init)?;
     }
-    let _lock = RunLock::acquire(&args.run)?;
-    crate::guard::remove_stale_temp_files(&args.run, &["ckpt", "ckpt.old", "val"])?;
-    let resumed_step = sgam_model::train::read_checkpoint(&args.run)?.map(|(_, state)| state.step);
+    let _lock = RunLock::acquire(&args.common.run)?;
+    crate::guard::remove_stale_temp_files(&args.common.run, &["ckpt", "ckpt.old", "val"])?;
+    let resumed_step = sgam_model::train::read_checkpoint(&args.common.run)?.map(|(_, state)| state.step);
     let resuming = resumed_step.is_some();
     if !resuming {
-        crate::guard::refuse_unresumable_run(&args.run, &["model.safetensors"])?;
+        crate::guard::refuse_unresumable_run(&args.common.run, &["model.safetensors"])?;
     }
     if stage == Stage::Two && args.init.is_none() && !resuming {
         bail!("stage 2 starts from a stage-1 model: pass --init RUN1/model.safetensors");
     }
-    let mut cfg = TrainConfig::new(stage, args.steps);
-    cfg.batch = args.batch;
+    let mut cfg = TrainConfig::new(stage, args.common.steps);
+    cfg.batch = args.common.batch;
     cfg.crop = args.crop;
-    cfg.lr = args.lr;
-    cfg.lr_decay_from = args.lr_decay_from;
+    cfg.lr = args.common.lr;
+    cfg.lr_decay_from = args.common.lr_decay_from;
     cfg.perceptual_weight = args.perceptual_weight;
     cfg.missing_weight = args.missing_weight.unwrap_or(if stage == Stage::Two { 10.0 } else { 1.0 });
-    cfg.data =
-        [("scenes".to_string(), args.scenes.to_string()), ("wide_holes".to_string(), args.wide_holes.to_string())]
-            .into_iter()
-            .collect();
+    cfg.data = [
+        ("scenes".to_string(), args.common.scenes.to_string()),
+        ("wide_holes".to_string(), args.wide_holes.to_string()),
+    ]
+    .into_iter()
+    .collect();
     cfg.warmup_no_quant_steps = args.warmup_no_quant;
     cfg.disc_start = args.disc_start;
-    cfg.ckpt_every = args.ckpt_every;
+    cfg.ckpt_every = args.common.ckpt_every;
     cfg.val_every = args.val_every;
-    cfg.seed = args.seed;
+    cfg.seed = args.common.seed;
     cfg.init_weights = args.init.clone();
-    let mut source = SynthPairs::new(stage, (0..args.scenes).collect(), 256).with_wide_holes(args.wide_holes);
+    let mut source = SynthPairs::new(stage, (0..args.common.scenes).collect(), 256).with_wide_holes(args.wide_holes);
     let val = validation_pairs(stage, 4, args.crop);
-    std::fs::create_dir_all(args.run.join("val")).with_context(|| format!("{}: cannot create", args.run.display()))?;
-    let pb = progress::bar(args.steps, "training");
-    let run_dir = args.run.clone();
+    std::fs::create_dir_all(args.common.run.join("val"))
+        .with_context(|| format!("{}: cannot create", args.common.run.display()))?;
+    let pb = progress::bar(args.common.steps, "training");
+    let run_dir = args.common.run.clone();
     // without a terminal (background runs) print a plain line every 50 steps instead of a bar
     let quiet_bar = std::io::IsTerminal::is_terminal(&std::io::stderr());
     // the loss log is append-only (one JSON object per line), written as training goes
-    let mut log = crate::guard::open_step_log(&args.run, "log.jsonl", resumed_step.unwrap_or(0))?;
+    let mut log = crate::guard::open_step_log(&args.common.run, "log.jsonl", resumed_step.unwrap_or(0))?;
     let mut on_step = |p: &sgam_model::TrainProgress| {
         let r = &p.report;
         pb.set_position(r.step);
@@ -362,17 +369,18 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
             );
         }
     };
-    let summary =
-        sgam_model::train(&args.run, &model_config, &cfg, &mut source, &val, &mut on_step).map_err(|e| match e {
+    let summary = sgam_model::train(&args.common.run, &model_config, &cfg, &mut source, &val, &mut on_step).map_err(
+        |e| match e {
             sgam_model::train::TrainError::ResumeMismatch { run, differences } => resume_mismatch(&run, &differences),
             other => anyhow::Error::new(other),
-        })?;
+        },
+    )?;
     pb.finish_and_clear();
     eprintln!(
         "trained to step {} ({:.2} images/s); weights: {}",
         summary.steps,
         summary.images_per_s,
-        args.run.join("model.safetensors").display()
+        args.common.run.join("model.safetensors").display()
     );
     Ok(())
 }

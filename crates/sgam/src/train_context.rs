@@ -10,7 +10,7 @@ use rand::Rng;
 use sgam_model::context::ContextConfig;
 use sgam_model::context_train::{context_pairs, ContextPair, ContextTrainConfig, ContextTrainer};
 use sgam_model::params::from_safetensors_bytes;
-use sgam_pipeline::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
+use sgam_pipeline::BUNDLED_MODEL;
 
 use crate::progress;
 use sgam_model::features::FEATURE_MODEL;
@@ -21,9 +21,9 @@ use sgam_model::features::FEATURE_MODEL;
     after_help = "Examples:\n  sgam train context --run runs/context --steps 6000     # from the bundled model\n  sgam train context --run runs/context --steps 9000 --lr-decay-from 6000   # resume, decayed tail\n  sgam train export runs/context/ckpt/model.safetensors models/compact.safetensors\n\nEverything but the transformer is frozen: the training pairs are recorded from the generator\n(oracle refiner, training scenes) and the model's encoder features of each are computed once,\nso a step costs the transformer alone. Pairs are cached in the run folder (pairs-*.bin).\nRe-running the same command resumes from RUN/ckpt. RUN/log.jsonl has one line per step,\nRUN/val.jsonl the held-out cross-entropy of the first pass (nothing revealed) and of MaskGIT's\nreveal schedule, with the head alone beside them."
 )]
 pub struct ContextArgs {
-    /// Run folder (created; holds the pairs, checkpoints and logs).
-    #[arg(long)]
-    pub run: PathBuf,
+    /// The run folder, steps, batch, learning rate, checkpoints, scenes and seed.
+    #[command(flatten)]
+    pub common: crate::train_common::TrainLoopArgs,
     /// Generative model whose encoder, code head, codebook and decoder are kept (default: the
     /// bundled model). When it has a context, that context is the starting point.
     #[arg(long)]
@@ -37,18 +37,6 @@ pub struct ContextArgs {
     /// Attention heads of a new context.
     #[arg(long, default_value_t = 4)]
     pub heads: usize,
-    /// Total optimisation steps.
-    #[arg(long, default_value_t = 8000)]
-    pub steps: u64,
-    /// Pairs per step.
-    #[arg(long, default_value_t = 16)]
-    pub batch: usize,
-    /// Adam learning rate.
-    #[arg(long, default_value_t = 5e-4)]
-    pub lr: f64,
-    /// Start of the half-cosine learning-rate decay (default: constant).
-    #[arg(long, value_name = "STEP")]
-    pub lr_decay_from: Option<u64>,
     /// Linear learning-rate warm-up, steps.
     #[arg(long, default_value_t = 200)]
     pub warmup: u64,
@@ -67,21 +55,12 @@ pub struct ContextArgs {
     /// Steps of each recorded generator run.
     #[arg(long, default_value_t = 40)]
     pub steps_per_run: usize,
-    /// Training scenes drawn from (seeds 0..N, below the held-out seeds).
-    #[arg(long, default_value_t = 100_000)]
-    pub scenes: u64,
-    /// Seed of the pairs, the initialisation, batch order and reveals.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
     /// Share of the training pairs' generator runs (0-1) that grow their map with the starting
     /// model's own completions (generation's default sampling) instead of the truth: the
     /// guidance then holds the model's earlier inventions, as in generation, and the target is
     /// still the true frame. Validation pairs stay the oracle's.
     #[arg(long, default_value_t = 0.0)]
     pub closed_loop: f32,
-    /// Checkpoint every N steps.
-    #[arg(long, default_value_t = 250)]
-    pub ckpt_every: u64,
     /// Validate every N steps (0 = only at the start).
     #[arg(long, default_value_t = 250)]
     pub val_every: u64,
@@ -92,31 +71,18 @@ pub struct ContextArgs {
 }
 
 fn validate(a: &ContextArgs) -> Result<()> {
-    if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
-        bail!("--scenes {} must be in 1..={HELD_OUT_SEED_BASE} (held-out seeds start there)", a.scenes);
-    }
-    if a.batch == 0 || a.batch > 256 {
-        bail!("--batch {} must be in 1..=256", a.batch);
-    }
-    if a.pairs < a.batch || a.pairs > 200_000 {
-        bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.batch);
+    a.common.validate()?;
+    if a.pairs < a.common.batch || a.pairs > 200_000 {
+        bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.common.batch);
     }
     if a.val_pairs == 0 || a.val_pairs > 20_000 {
         bail!("--val-pairs {} must be in 1..=20000", a.val_pairs);
-    }
-    if !(a.lr.is_finite() && a.lr > 0.0 && a.lr < 1.0) {
-        bail!("--lr {} must be a positive number below 1", a.lr);
     }
     if !(a.closed_loop.is_finite() && (0.0..=1.0).contains(&a.closed_loop)) {
         bail!("--closed-loop {} must be a share between 0 and 1", a.closed_loop);
     }
     if !(a.whole_hole.is_finite() && (0.0..=1.0).contains(&a.whole_hole)) {
         bail!("--whole-hole {} must be a share between 0 and 1", a.whole_hole);
-    }
-    if let Some(from) = a.lr_decay_from {
-        if from >= a.steps {
-            bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
-        }
     }
     if let Some(t) = a.time_limit {
         if !(t.is_finite() && t > 0.0) {
@@ -135,19 +101,20 @@ fn validate(a: &ContextArgs) -> Result<()> {
 /// Runs `sgam train context`.
 pub fn run(a: &ContextArgs) -> Result<()> {
     validate(a)?;
-    std::fs::create_dir_all(&a.run).with_context(|| format!("{}: cannot create the run folder", a.run.display()))?;
-    let _lock = crate::guard::RunLock::acquire(&a.run)?;
-    crate::guard::remove_stale_temp_files(&a.run, &[])?;
+    std::fs::create_dir_all(&a.common.run)
+        .with_context(|| format!("{}: cannot create the run folder", a.common.run.display()))?;
+    let _lock = crate::guard::RunLock::acquire(&a.common.run)?;
+    crate::guard::remove_stale_temp_files(&a.common.run, &[])?;
     let device = sgam_model::default_device();
-    let resuming = ContextTrainer::has_checkpoint(&a.run);
+    let resuming = ContextTrainer::has_checkpoint(&a.common.run);
     if !resuming {
         // (a run killed before its first checkpoint restarts: only its logs are there)
-        crate::guard::refuse_unresumable_run(&a.run, &[])?;
+        crate::guard::refuse_unresumable_run(&a.common.run, &[])?;
     }
     let mut trainer = if resuming {
-        let t = ContextTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)
-            .with_context(|| format!("{}: cannot resume", a.run.display()))?;
-        eprintln!("resuming {} at step {}", a.run.display(), t.step);
+        let t = ContextTrainer::resume(&a.common.run, Some(a.common.steps), a.common.lr_decay_from)
+            .with_context(|| format!("{}: cannot resume", a.common.run.display()))?;
+        eprintln!("resuming {} at step {}", a.common.run.display(), t.step);
         t
     } else {
         let bytes = match &a.model {
@@ -170,14 +137,14 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             cfg.context = Some(c);
         }
         let tc = ContextTrainConfig {
-            steps: a.steps,
-            batch: a.batch,
-            lr: a.lr,
-            lr_decay_from: a.lr_decay_from,
+            steps: a.common.steps,
+            batch: a.common.batch,
+            lr: a.common.lr,
+            lr_decay_from: a.common.lr_decay_from,
             warmup: a.warmup,
             whole_hole: a.whole_hole,
-            ckpt_every: a.ckpt_every,
-            seed: a.seed,
+            ckpt_every: a.common.ckpt_every,
+            seed: a.common.seed,
             ..ContextTrainConfig::default()
         };
         ContextTrainer::new(&cfg, &tensors, &tc).with_context(|| format!("{what}: cannot start training"))?
@@ -201,11 +168,11 @@ pub fn run(a: &ContextArgs) -> Result<()> {
         );
     }
     let spec = crate::train_sampler::PairSpec {
-        run: &a.run,
+        run: &a.common.run,
         steps_per_run: a.steps_per_run,
         crop: a.crop,
-        scenes: a.scenes,
-        seed: a.seed,
+        scenes: a.common.scenes,
+        seed: a.common.seed,
         closed_loop: (a.closed_loop > 0.0).then(|| sgam_pipeline::codepairs::ClosedLoop {
             share: a.closed_loop,
             weights: &start_bytes,
@@ -233,8 +200,8 @@ pub fn run(a: &ContextArgs) -> Result<()> {
         started.elapsed().as_secs_f64()
     );
     let (mut log, mut val_log) = (
-        crate::guard::open_step_log(&a.run, "log.jsonl", trainer.step)?,
-        crate::guard::open_step_log(&a.run, "val.jsonl", trainer.step)?,
+        crate::guard::open_step_log(&a.common.run, "log.jsonl", trainer.step)?,
+        crate::guard::open_step_log(&a.common.run, "val.jsonl", trainer.step)?,
     );
     let steps = trainer.train_config.steps;
     let pb = progress::bar(steps, "training");
@@ -299,19 +266,19 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             mean = (0.0, 0.0, 0);
         }
         if r.step % trainer.train_config.ckpt_every.max(1) == 0 {
-            trainer.save(&a.run)?;
+            trainer.save(&a.common.run)?;
         }
         if a.val_every > 0 && r.step % a.val_every == 0 {
             validate(&trainer, &pb)?;
         }
     }
-    trainer.save(&a.run)?;
+    trainer.save(&a.common.run)?;
     pb.finish_and_clear();
     eprintln!(
         "trained to step {}; weights: {} (export with: sgam train export {} models/compact.safetensors)",
         trainer.step,
-        a.run.join("ckpt/model.safetensors").display(),
-        a.run.join("ckpt/model.safetensors").display()
+        a.common.run.join("ckpt/model.safetensors").display(),
+        a.common.run.join("ckpt/model.safetensors").display()
     );
     Ok(())
 }

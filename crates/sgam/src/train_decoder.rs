@@ -15,7 +15,7 @@ use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Sce
 
 use crate::progress;
 use sgam_model::features::FEATURE_MODEL;
-use sgam_pipeline::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
+use sgam_pipeline::BUNDLED_MODEL;
 
 /// Arguments of `sgam train decoder`.
 #[derive(Debug, Args)]
@@ -23,9 +23,9 @@ use sgam_pipeline::{BUNDLED_MODEL, HELD_OUT_SEED_BASE};
     after_help = "Example (how the bundled model's decoder was tuned):\n  sgam train decoder --run runs/decoder --steps 1200\n  sgam train export runs/decoder/ckpt/model.safetensors models/compact.safetensors\n\nRe-running the same command resumes from RUN/ckpt."
 )]
 pub struct DecoderArgs {
-    /// Run folder (checkpoint in RUN/ckpt, logs).
-    #[arg(long)]
-    pub run: PathBuf,
+    /// The run folder, steps, batch, learning rate, checkpoints, scenes and seed.
+    #[command(flatten)]
+    pub common: crate::train_common::TrainLoopArgs,
     /// Model whose decoder is tuned (default: the bundled model).
     #[arg(long)]
     pub model: Option<PathBuf>,
@@ -33,12 +33,6 @@ pub struct DecoderArgs {
     /// codes the bundled sampler predicts); must share --model's codebook.
     #[arg(long)]
     pub encoder: Option<PathBuf>,
-    /// Total optimisation steps (a resumed run continues up to this).
-    #[arg(long, default_value_t = 1200)]
-    pub steps: u64,
-    /// Whole frames per step.
-    #[arg(long, default_value_t = 4)]
-    pub batch: usize,
     /// Frame size (square, the generator's: 256).
     #[arg(long, default_value_t = 256)]
     pub res: u32,
@@ -48,55 +42,27 @@ pub struct DecoderArgs {
     /// Held-out frames (other training scenes) for the validation line.
     #[arg(long, default_value_t = 32)]
     pub val_frames: usize,
-    /// Adam learning rate.
-    #[arg(long, default_value_t = 1e-4)]
-    pub lr: f64,
-    /// Half-cosine decay of the learning rate from this step to --steps.
-    #[arg(long, value_name = "STEP")]
-    pub lr_decay_from: Option<u64>,
     /// Weight of the disparity L1 relative to the colour L1.
     #[arg(long, default_value_t = 4.0)]
     pub depth_weight: f32,
-    /// Checkpoint and validate every N steps.
-    #[arg(long, default_value_t = 100)]
-    pub ckpt_every: u64,
-    /// Training scenes: seeds 0..N (held-out evaluation seeds start at 1000000).
-    #[arg(long, default_value_t = 100_000)]
-    pub scenes: u64,
-    /// Seed of the frame choice and batch order.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
 }
 
 fn validate(a: &DecoderArgs) -> Result<()> {
-    if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
-        bail!("--scenes {} must be in 1..={HELD_OUT_SEED_BASE} (held-out seeds start there)", a.scenes);
-    }
-    if a.batch == 0 || a.batch > 64 {
-        bail!("--batch {} must be in 1..=64", a.batch);
+    a.common.validate()?;
+    if a.common.batch == 0 || a.common.batch > 64 {
+        bail!("--batch {} must be in 1..=64", a.common.batch);
     }
     if !(16..=1024).contains(&a.res) {
         bail!("--res {} must be in 16..=1024", a.res);
     }
-    if a.frames < a.batch || a.frames > 20_000 {
-        bail!("--frames {} must be at least --batch ({}) and at most 20000", a.frames, a.batch);
+    if a.frames < a.common.batch || a.frames > 20_000 {
+        bail!("--frames {} must be at least --batch ({}) and at most 20000", a.frames, a.common.batch);
     }
     if a.val_frames == 0 || a.val_frames > 2_000 {
         bail!("--val-frames {} must be in 1..=2000", a.val_frames);
     }
-    if !(a.lr.is_finite() && a.lr > 0.0 && a.lr < 1.0) {
-        bail!("--lr {} must be a positive number below 1", a.lr);
-    }
     if !(a.depth_weight.is_finite() && (0.0..=1000.0).contains(&a.depth_weight)) {
         bail!("--depth-weight {} must be between 0 and 1000", a.depth_weight);
-    }
-    if let Some(from) = a.lr_decay_from {
-        if from >= a.steps {
-            bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
-        }
-    }
-    if a.ckpt_every == 0 {
-        bail!("--ckpt-every must be at least 1");
     }
     Ok(())
 }
@@ -104,13 +70,13 @@ fn validate(a: &DecoderArgs) -> Result<()> {
 /// `n` clean frames of the generator's camera (height, pitch, heading of the zig-zag) at random
 /// places of training scenes, four per scene, drawn from stream `stream` of `seed`.
 fn render_frames(n: usize, a: &DecoderArgs, stream: u64, what: &str) -> (Vec<RgbdFrame>, Vec<Intrinsics>) {
-    let mut rng = ChaCha8Rng::seed_from_u64(a.seed);
+    let mut rng = ChaCha8Rng::seed_from_u64(a.common.seed);
     rng.set_stream(stream);
     let k = dataset_intrinsics(a.res);
     let pb = progress::bar(n as u64, what);
     let mut frames = Vec::with_capacity(n);
     while frames.len() < n {
-        let scene = Scene::generate(rng.random_range(0..a.scenes), &SceneConfig::default());
+        let scene = Scene::generate(rng.random_range(0..a.common.scenes), &SceneConfig::default());
         let renderer = Renderer::new(&scene);
         for _ in 0..4.min(n - frames.len()) {
             let centre = Vec3::new(rng.random_range(-20.0..20.0), rng.random_range(-20.0..20.0), 0.0);
@@ -126,7 +92,8 @@ fn render_frames(n: usize, a: &DecoderArgs, stream: u64, what: &str) -> (Vec<Rgb
 /// Runs `sgam train decoder`.
 pub fn run(a: &DecoderArgs) -> Result<()> {
     validate(a)?;
-    std::fs::create_dir_all(&a.run).with_context(|| format!("{}: cannot create the run folder", a.run.display()))?;
+    std::fs::create_dir_all(&a.common.run)
+        .with_context(|| format!("{}: cannot create the run folder", a.common.run.display()))?;
     let device = sgam_model::default_device();
     let encoder_bytes = match &a.encoder {
         Some(p) => std::fs::read(p).with_context(|| format!("{}: cannot read --encoder", p.display()))?,
@@ -134,9 +101,9 @@ pub fn run(a: &DecoderArgs) -> Result<()> {
     };
     let (encoder, encoder_config) = sgam_model::refiner::load_model_bytes(&encoder_bytes, None, &device)
         .context("the encoder model cannot be loaded")?;
-    let mut tuner = if DecoderTuner::checkpoint_dir(&a.run).is_some() {
-        let t = DecoderTuner::resume(&a.run, encoder, &encoder_config, Some(a.steps))?;
-        eprintln!("resuming {} at step {}", a.run.display(), t.step);
+    let mut tuner = if DecoderTuner::checkpoint_dir(&a.common.run).is_some() {
+        let t = DecoderTuner::resume(&a.common.run, encoder, &encoder_config, Some(a.common.steps))?;
+        eprintln!("resuming {} at step {}", a.common.run.display(), t.step);
         t
     } else {
         let bytes = match &a.model {
@@ -149,9 +116,9 @@ pub fn run(a: &DecoderArgs) -> Result<()> {
             None => bail!("--model has no embedded config (export it with `sgam train export`)"),
         };
         let tc = DecoderTuneConfig {
-            steps: a.steps,
-            lr: a.lr,
-            lr_decay_from: a.lr_decay_from,
+            steps: a.common.steps,
+            lr: a.common.lr,
+            lr_decay_from: a.common.lr_decay_from,
             depth_weight: a.depth_weight,
         };
         DecoderTuner::new(&config, &tensors, encoder, &encoder_config, &tc)?
@@ -168,11 +135,11 @@ pub fn run(a: &DecoderArgs) -> Result<()> {
     let mut log = std::fs::OpenOptions::new()
         .create(true)
         .append(true)
-        .open(a.run.join("log.jsonl"))
-        .with_context(|| format!("{}: cannot open log.jsonl", a.run.display()))?;
+        .open(a.common.run.join("log.jsonl"))
+        .with_context(|| format!("{}: cannot open log.jsonl", a.common.run.display()))?;
     let say = |line: String| eprintln!("{line}");
     let report = |tuner: &DecoderTuner, log: &mut std::fs::File| -> Result<()> {
-        let v = tuner.evaluate(&val, &val_k, a.batch)?;
+        let v = tuner.evaluate(&val, &val_k, a.common.batch)?;
         say(format!(
             "step {}: validation colour L1 {:.4}, disparity L1 {:.4}, depth MAE {:.3} m, top {BORDER_ROWS} rows' \
              bias {:+.3} m",
@@ -189,12 +156,12 @@ pub fn run(a: &DecoderArgs) -> Result<()> {
     while tuner.step < tuner.config.steps {
         // the batch of a step depends only on the seed and the step: a resumed run sees the
         // same batches as an uninterrupted one
-        let mut rng = ChaCha8Rng::seed_from_u64(a.seed ^ tuner.step.wrapping_mul(0x9E37_79B9_7F4A_7C15));
-        let idx: Vec<usize> = (0..a.batch).map(|_| rng.random_range(0..train.len())).collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(a.common.seed ^ tuner.step.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let idx: Vec<usize> = (0..a.common.batch).map(|_| rng.random_range(0..train.len())).collect();
         let frames: Vec<&RgbdFrame> = idx.iter().map(|&i| &train[i]).collect();
         let ks: Vec<Intrinsics> = idx.iter().map(|&i| train_k[i]).collect();
         let r = tuner.step_on(&frames, &ks)?;
-        let rate = (tuner.step - first) as f64 * a.batch as f64 / t0.elapsed().as_secs_f64().max(1e-6);
+        let rate = (tuner.step - first) as f64 * a.common.batch as f64 / t0.elapsed().as_secs_f64().max(1e-6);
         writeln!(log, "{}", serde_json::json!({ "report": r, "frames_per_s": rate }))?;
         if r.step % 20 == 0 {
             say(format!(
@@ -202,17 +169,17 @@ pub fn run(a: &DecoderArgs) -> Result<()> {
                 r.step, r.loss, r.l1_colour, r.l1_disparity, r.top_rows_bias_m
             ));
         }
-        if r.step % a.ckpt_every == 0 {
-            tuner.save(&a.run)?;
+        if r.step % a.common.ckpt_every == 0 {
+            tuner.save(&a.common.run)?;
             report(&tuner, &mut log)?;
         }
     }
-    tuner.save(&a.run)?;
+    tuner.save(&a.common.run)?;
     eprintln!(
         "tuned to step {}; weights: {} (export with: sgam train export {} models/compact.safetensors)",
         tuner.step,
-        a.run.join("ckpt/model.safetensors").display(),
-        a.run.join("ckpt/model.safetensors").display()
+        a.common.run.join("ckpt/model.safetensors").display(),
+        a.common.run.join("ckpt/model.safetensors").display()
     );
     Ok(())
 }

@@ -12,20 +12,11 @@ use sgam_model::params::from_safetensors_bytes;
 
 use crate::progress;
 use sgam_model::features::FEATURE_MODEL;
-use sgam_pipeline::HELD_OUT_SEED_BASE;
 
 fn validate(a: &SamplerArgs) -> Result<()> {
-    if a.scenes == 0 || a.scenes > HELD_OUT_SEED_BASE {
-        bail!("--scenes {} must be in 1..={HELD_OUT_SEED_BASE} (held-out seeds start there)", a.scenes);
-    }
-    if a.batch == 0 || a.batch > 256 {
-        bail!("--batch {} must be in 1..=256", a.batch);
-    }
-    if a.pairs < a.batch || a.pairs > 200_000 {
-        bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.batch);
-    }
-    if !(a.lr.is_finite() && a.lr > 0.0 && a.lr < 1.0) {
-        bail!("--lr {} must be a positive number below 1", a.lr);
+    a.common.validate()?;
+    if a.pairs < a.common.batch || a.pairs > 200_000 {
+        bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.common.batch);
     }
     if !(a.observed_weight.is_finite() && a.observed_weight >= 0.0) {
         bail!("--observed-weight {} must be a non-negative number", a.observed_weight);
@@ -38,11 +29,6 @@ fn validate(a: &SamplerArgs) -> Result<()> {
     }
     if !(a.reveal.is_finite() && (0.0..=1.0).contains(&a.reveal)) {
         bail!("--reveal {} must be a probability between 0 and 1", a.reveal);
-    }
-    if let Some(from) = a.lr_decay_from {
-        if from >= a.steps {
-            bail!("--lr-decay-from ({from}) must be below --steps ({})", a.steps);
-        }
     }
     if a.steps_per_run == 0 || a.steps_per_run > 1000 {
         bail!("--steps-per-run {} must be in 1..=1000", a.steps_per_run);
@@ -59,9 +45,9 @@ fn validate(a: &SamplerArgs) -> Result<()> {
     after_help = "Examples:\n  sgam train sampler --run runs/sampler --steps 12000          # from the bundled model\n  sgam train sampler --run runs/sampler --steps 16000 --lr-decay-from 12000   # resume, decayed tail\n  sgam train export runs/sampler/ckpt/model.safetensors models/compact.safetensors\n\nThe training pairs are recorded from the generator (oracle refiner, training scenes) when the\nrun starts and kept in memory; the frozen target encoder is copied to RUN/target.safetensors so\na resumed run computes the same targets. RUN/log.jsonl has one line per step, RUN/val.jsonl the\nheld-out cross-entropy and accuracy."
 )]
 pub struct SamplerArgs {
-    /// Run folder (checkpoint in RUN/ckpt, logs).
-    #[arg(long)]
-    pub run: PathBuf,
+    /// The run folder, steps, batch, learning rate, checkpoints, scenes and seed.
+    #[command(flatten)]
+    pub common: crate::train_common::TrainLoopArgs,
     /// Model whose codebook and decoder are kept and whose encoder gives the targets; also the
     /// starting point unless --warm-start is given (default: `models/features.safetensors`, the
     /// stage-2 regression model the bundled sampler was built on).
@@ -89,12 +75,6 @@ pub struct SamplerArgs {
     /// multimodal distributions, the distances cannot).
     #[arg(long)]
     pub distance_logits: bool,
-    /// Total optimisation steps (a resumed run continues up to this).
-    #[arg(long, default_value_t = 12_000)]
-    pub steps: u64,
-    /// Pairs per step.
-    #[arg(long, default_value_t = 8)]
-    pub batch: usize,
     /// Crop side in pixels (a multiple of the model's downsampling factor).
     #[arg(long, default_value_t = 128)]
     pub crop: u32,
@@ -107,12 +87,6 @@ pub struct SamplerArgs {
     /// Steps per recorded generator run.
     #[arg(long, default_value_t = 40)]
     pub steps_per_run: usize,
-    /// Adam learning rate.
-    #[arg(long, default_value_t = 3e-4)]
-    pub lr: f64,
-    /// Half-cosine decay of the learning rate from this step to --steps.
-    #[arg(long, value_name = "STEP")]
-    pub lr_decay_from: Option<u64>,
     /// Loss weight of observed latent cells relative to missing ones.
     #[arg(long, default_value_t = 0.2)]
     pub observed_weight: f32,
@@ -120,18 +94,9 @@ pub struct SamplerArgs {
     /// target code (codes that decode alike); 0 = one-hot.
     #[arg(long, default_value_t = 1.0)]
     pub target_smoothing: f32,
-    /// Checkpoint every N steps.
-    #[arg(long, default_value_t = 250)]
-    pub ckpt_every: u64,
     /// Validate every N steps.
     #[arg(long, default_value_t = 500)]
     pub val_every: u64,
-    /// Training scenes: seeds 0..N (held-out evaluation seeds start at 1000000).
-    #[arg(long, default_value_t = 100_000)]
-    pub scenes: u64,
-    /// Seed of the pair recording and the batch order.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
 }
 
 /// What a run's recorded pairs are drawn with (its options; the cache key of `RUN/pairs-*.bin`).
@@ -203,12 +168,13 @@ pub(crate) fn recorded_pairs(
 /// Runs `sgam train sampler`.
 pub fn run(a: &SamplerArgs) -> Result<()> {
     validate(a)?;
-    std::fs::create_dir_all(&a.run).with_context(|| format!("{}: cannot create the run folder", a.run.display()))?;
-    let _lock = crate::guard::RunLock::acquire(&a.run)?;
-    crate::guard::remove_stale_temp_files(&a.run, &[])?;
+    std::fs::create_dir_all(&a.common.run)
+        .with_context(|| format!("{}: cannot create the run folder", a.common.run.display()))?;
+    let _lock = crate::guard::RunLock::acquire(&a.common.run)?;
+    crate::guard::remove_stale_temp_files(&a.common.run, &[])?;
     let device = sgam_model::default_device();
     // the frozen target encoder: a copy of the starting model, kept with the run
-    let target_path = a.run.join("target.safetensors");
+    let target_path = a.common.run.join("target.safetensors");
     if !target_path.exists() {
         let bytes = match &a.init {
             Some(p) => std::fs::read(p).with_context(|| format!("{}: cannot read --init", p.display()))?,
@@ -225,41 +191,41 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             target_config.downsample_factor()
         );
     }
-    let resuming = CodeTrainer::checkpoint_dir(&a.run).is_some();
+    let resuming = CodeTrainer::checkpoint_dir(&a.common.run).is_some();
     if !resuming {
         // (a run killed before its first checkpoint restarts: only its logs are there)
-        crate::guard::refuse_unresumable_run(&a.run, &[])?;
+        crate::guard::refuse_unresumable_run(&a.common.run, &[])?;
     }
     let mut trainer = if resuming {
-        let t = CodeTrainer::resume(&a.run, Some(a.steps), a.lr_decay_from)?;
+        let t = CodeTrainer::resume(&a.common.run, Some(a.common.steps), a.common.lr_decay_from)?;
         if t.train_config.depth_weight != a.depth_weight {
             bail!(
                 "{}: this run trains with --depth-weight {}; resume with it (or start a new run)",
-                a.run.display(),
+                a.common.run.display(),
                 t.train_config.depth_weight
             );
         }
         if t.train_config.reveal != a.reveal {
             bail!(
                 "{}: this run trains with --reveal {}; resume with it (or start a new run)",
-                a.run.display(),
+                a.common.run.display(),
                 t.train_config.reveal
             );
         }
-        eprintln!("resuming {} at step {}", a.run.display(), t.step);
+        eprintln!("resuming {} at step {}", a.common.run.display(), t.step);
         t
     } else {
         let tc = CodeTrainConfig {
-            steps: a.steps,
-            batch: a.batch,
-            lr: a.lr,
-            lr_decay_from: a.lr_decay_from,
+            steps: a.common.steps,
+            batch: a.common.batch,
+            lr: a.common.lr,
+            lr_decay_from: a.common.lr_decay_from,
             observed_weight: a.observed_weight,
             target_smoothing: a.target_smoothing,
             depth_weight: a.depth_weight,
             reveal: a.reveal,
-            ckpt_every: a.ckpt_every,
-            seed: a.seed,
+            ckpt_every: a.common.ckpt_every,
+            seed: a.common.seed,
             ..CodeTrainConfig::default()
         };
         let mut cfg = target_config.clone();
@@ -298,11 +264,11 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     // recorded once per run folder and cached there (RUN/pairs-*.bin), so a restart or a resume
     // trains at once
     let spec = PairSpec {
-        run: &a.run,
+        run: &a.common.run,
         steps_per_run: a.steps_per_run,
         crop: a.crop,
-        scenes: a.scenes,
-        seed: a.seed,
+        scenes: a.common.scenes,
+        seed: a.common.seed,
         closed_loop: None,
     };
     let record = |n: usize, stream: u64, what: &str| {
@@ -318,8 +284,8 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         started.elapsed().as_secs_f64()
     );
     let (mut log, mut val_log) = (
-        crate::guard::open_step_log(&a.run, "log.jsonl", trainer.step)?,
-        crate::guard::open_step_log(&a.run, "val.jsonl", trainer.step)?,
+        crate::guard::open_step_log(&a.common.run, "log.jsonl", trainer.step)?,
+        crate::guard::open_step_log(&a.common.run, "val.jsonl", trainer.step)?,
     );
     let steps = trainer.train_config.steps;
     let pb = progress::bar(steps, "training");
@@ -381,19 +347,19 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             );
         }
         if r.step % trainer.train_config.ckpt_every.max(1) == 0 {
-            trainer.save(&a.run)?;
+            trainer.save(&a.common.run)?;
         }
         if a.val_every > 0 && r.step % a.val_every == 0 {
             validate(&trainer, &pb)?;
         }
     }
-    trainer.save(&a.run)?;
+    trainer.save(&a.common.run)?;
     pb.finish_and_clear();
     eprintln!(
         "trained to step {}; weights: {} (export with: sgam train export {} models/compact.safetensors)",
         trainer.step,
-        a.run.join("ckpt/model.safetensors").display(),
-        a.run.join("ckpt/model.safetensors").display()
+        a.common.run.join("ckpt/model.safetensors").display(),
+        a.common.run.join("ckpt/model.safetensors").display()
     );
     Ok(())
 }
