@@ -22,6 +22,14 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// Focal lengths, in pixels, that a real camera has for an image side of `side_px` pixels:
+    /// 0.005-500 times the side, fields of view from about 0.1 to 179 degrees. Outside it the
+    /// map's frustum spans thousands of voxels per pixel (or none); every reader of intrinsics
+    /// (command-line options, pose and calibration files) refuses focal lengths outside it.
+    pub fn plausible_focal_px(side_px: f32) -> std::ops::RangeInclusive<f32> {
+        0.005 * side_px..=500.0 * side_px
+    }
+
     /// Checked constructor: positive finite focal lengths, non-zero size, finite centre.
     pub fn try_new(width: u32, height: u32, fx: f32, fy: f32, cx: f32, cy: f32) -> Result<Self, CoreError> {
         if width == 0 || height == 0 {

@@ -169,10 +169,11 @@ pub fn intrinsics_from_k(path: &Path, k: &[f64], width: u32, height: u32) -> Res
     let (w, h) = (f64::from(width), f64::from(height));
     // a camera no real image has: the map's frustum would span thousands of voxels per pixel
     for (name, f, side) in [("fx", k[0], w), ("fy", k[4], h)] {
-        if !(f >= 0.005 * side && f <= 500.0 * side) {
+        let range = Intrinsics::plausible_focal_px(side as f32);
+        if !range.contains(&(f as f32)) {
             return Err(IoError::invalid(
                 path,
-                format!("{name} = {f} px for a {side} px image side (accepted {}..={} px)", 0.005 * side, 500.0 * side),
+                format!("{name} = {f} px for a {side} px image side (accepted {}..={} px)", range.start(), range.end()),
             ));
         }
     }

@@ -141,12 +141,13 @@ pub fn synthetic_seed_camera(res: u32) -> Camera {
 pub fn check_intrinsics([fx, fy, cx, cy]: [f32; 4], w: u32, h: u32) -> Result<()> {
     let (w, h) = (w as f32, h as f32);
     for (name, f, side) in [("fx", fx, w), ("fy", fy, h)] {
-        if !(f >= 0.005 * side && f <= 500.0 * side) {
+        let range = sgam_core::Intrinsics::plausible_focal_px(side);
+        if !range.contains(&f) {
             config_error!(
                 "--intrinsics {name} {f} is out of range for a {side} px image side: accepted {}..={} px \
                  (fields of view from 0.1 to 179 degrees)",
-                0.005 * side,
-                500.0 * side
+                range.start(),
+                range.end()
             );
         }
     }
