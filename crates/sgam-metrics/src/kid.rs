@@ -53,4 +53,27 @@ mod tests {
         assert!(diff > 10.0 * same.abs().max(1e-3), "diff {diff} same {same}");
         assert!(kid(&a[..1], &b).is_none());
     }
+
+    #[test]
+    fn kid_of_tiny_sets_equals_the_hand_computed_estimate() {
+        // d = 2, k(a, b) = (a.b / 2 + 1)^3. X = {(1, 0), (0, 1)}: the one off-diagonal pair has
+        // a.b = 0, k = 1, so the within-X mean is 1 (the diagonal, k = 1.5^3 = 3.375, is left
+        // out: with it the mean would be 2.1875). Y = {(2, 2), (2, 2)}: a.b = 8, k = 5^3 = 125.
+        // Cross: every x.y = 2, k = 2^3 = 8. KID = 1 + 125 - 2 * 8 = 110.
+        let x = vec![vec![1.0f32, 0.0], vec![0.0, 1.0]];
+        let y = vec![vec![2.0f32, 2.0], vec![2.0, 2.0]];
+        assert_eq!(kid(&x, &y), Some(110.0));
+        assert_eq!(kid(&y, &x), Some(110.0), "symmetric");
+        // The unbiased estimate can be negative. d = 1, X = {0, 1}, Y = {0, 2}: within X
+        // k(0, 1) = 1, within Y k(0, 2) = 1, cross (1 + 1 + 1 + 3^3) / 4 = 7.5: 1 + 1 - 15 = -13.
+        assert_eq!(kid(&[vec![0.0], vec![1.0]], &[vec![0.0], vec![2.0]]), Some(-13.0));
+        // Three rows: the within mean divides by n (n - 1) = 6 ordered pairs. X = {(1, 0),
+        // (0, 1), (0, 0)}: every pair has a.b = 0, within mean 1; Y as above; cross: x.y is 2,
+        // 2, 0, k = 8, 8, 1 per y row, mean (8 + 8 + 1) / 3 = 17 / 3. KID = 1 + 125 - 34 / 3.
+        let x3 = vec![vec![1.0f32, 0.0], vec![0.0, 1.0], vec![0.0, 0.0]];
+        let got = kid(&x3, &y).unwrap();
+        assert!((got - (126.0 - 34.0 / 3.0)).abs() < 1e-12, "{got}");
+        // rows of another length are refused
+        assert!(kid(&x, &[vec![1.0], vec![2.0]]).is_none());
+    }
 }

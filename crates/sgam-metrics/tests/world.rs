@@ -344,26 +344,70 @@ fn identical_worlds_score_identically() {
     assert_eq!(m.one_nna, 0.0, "{m:?}");
 }
 
+/// Distance (metres) from `p` to the triangle `t` in the xy plane: 0 inside, else to the nearest
+/// edge. Written here apart from `Exclusion::excludes`, so the expected count does not reuse it.
+fn distance_to_triangle(p: Vec2, t: &[Vec2; 3]) -> f32 {
+    let side = |a: Vec2, b: Vec2| (b - a).perp_dot(p - a);
+    let s = [side(t[0], t[1]), side(t[1], t[2]), side(t[2], t[0])];
+    if s.iter().all(|x| *x >= 0.0) || s.iter().all(|x| *x <= 0.0) {
+        return 0.0;
+    }
+    (0..3)
+        .map(|i| {
+            let (a, b) = (t[i], t[(i + 1) % 3]);
+            let u = ((p - a).dot(b - a) / (b - a).length_squared()).clamp(0.0, 1.0);
+            p.distance(a + (b - a) * u)
+        })
+        .fold(f32::INFINITY, f32::min)
+}
+
 #[test]
 fn forty_metre_world_counts_its_cubes() {
-    // 40 x 40 m ground at 5 cm (640k vertices) and 100 unit cubes (265k vertices)
+    // 40 x 40 m ground at 5 cm (640k vertices) and 100 unit cubes (265k vertices), 4 m apart
+    // (3 m of open ground between neighbours: no two cubes can merge into one object)
     let mut m = ground(0.025, 0.025, 39.975, 39.975, GROUND_Z, Density::Fine);
-    for i in 0..100 {
-        let (x, y) = ((i % 10) as f32 * 4.0 + 1.03, (i / 10) as f32 * 4.0 + 1.03);
+    let corners: Vec<(f32, f32)> =
+        (0..100).map(|i| ((i % 10) as f32 * 4.0 + 1.03, (i / 10) as f32 * 4.0 + 1.03)).collect();
+    for &(x, y) in &corners {
         m.append(&standing(x, y, x + 1.0, y + 1.0, 1.0, [0.8, 0.2, 0.5], Density::Fine));
     }
-    let ex = Exclusion { polygon_xy_m: vec![Vec2::new(18.0, 18.0), Vec2::new(22.0, 18.0), Vec2::new(20.0, 22.0)] };
+    let tri = [Vec2::new(18.0, 18.0), Vec2::new(22.0, 18.0), Vec2::new(20.0, 22.0)];
+    let ex = Exclusion { polygon_xy_m: tri.to_vec() };
+    let cfg = WorldStatsConfig::default();
     let t = std::time::Instant::now();
-    let s = world_stats(&m, &ex, &WorldStatsConfig::default());
+    let s = world_stats(&m, &ex, &cfg);
     let secs = t.elapsed().as_secs_f64();
     eprintln!("world_stats on {} vertices, {} triangles: {secs:.3} s", m.positions.len(), m.triangles.len());
-    // 100 cubes, of which only those within 1 m of the small triangle can be dropped (at most
-    // the 4 around it); speed is reported above, measured in benchmarks, never asserted
-    assert!((96..=100).contains(&s.objects), "{s:?}");
-    // whole cubes cover their 1 m^2 plus at most one ring of 10 cm cells; cubes cut by the
-    // exclusion's margin keep only a part
-    let whole = s.object_areas_m2.iter().filter(|a| (1.0..=1.44).contains(*a)).count();
-    assert!(whole >= 96 && s.object_areas_m2.iter().all(|a| *a <= 1.44), "{:?}", s.object_areas_m2);
+    // Expected, cell by cell: a cube spanning [x, x + 1] with x = 1.03 + 4i raises the 11 x 11
+    // cells floor(10 x) ..= floor(10 (x + 1)) (its walls sit 3 mm inside the outer ones; no
+    // vertex lies on a cell boundary), 121 cells = 1.21 m^2. A cell is left out when its centre
+    // lies within the 1 m margin of the triangle (no centre is within 6 mm of that margin, so
+    // rounding cannot flip one). Only three cubes come that close: (4, 4) at [17.03, 18.03]^2
+    // keeps the 21 cells more than 1 m from the vertex (18, 18) (its far corner, 1.37 m away),
+    // (5, 5) at [21.03, 22.03]^2 keeps the 85 cells more than 1 m from the edge (22, 18)-(20, 22),
+    // and (5, 4) at [21.03, 22.03] x [17.03, 18.03] lies within 1 m of the bottom edge and loses
+    // all. Each remnant is one piece (a square less a disc at one corner, a square less a
+    // half-plane), and an object needs 20 cells (0.2 m^2): 97 whole cubes + 2 remnants = 99.
+    let kept_cells: Vec<usize> = corners
+        .iter()
+        .map(|&(x, y)| {
+            let cells = |lo: f32| (lo / CELL).floor() as i32..=((lo + 1.0) / CELL).floor() as i32;
+            cells(x)
+                .flat_map(|i| cells(y).map(move |j| Vec2::new((i as f32 + 0.5) * CELL, (j as f32 + 0.5) * CELL)))
+                .filter(|c| distance_to_triangle(*c, &tri) > cfg.exclusion_margin_m)
+                .count()
+        })
+        .collect();
+    let mut cut: Vec<(usize, usize)> = kept_cells.iter().copied().enumerate().filter(|(_, n)| *n != 121).collect();
+    cut.sort_unstable();
+    assert_eq!(cut, vec![(44, 21), (45, 0), (55, 85)], "cubes cut by the exclusion (index, cells kept)");
+    let mut expected: Vec<f32> = kept_cells.iter().filter(|n| **n >= 20).map(|n| *n as f32 * CELL * CELL).collect();
+    expected.sort_by(f32::total_cmp);
+    assert_eq!(s.objects, 99, "{s:?}");
+    assert_eq!(s.object_areas_m2.len(), expected.len());
+    for (got, want) in s.object_areas_m2.iter().zip(&expected) {
+        assert!((got - want).abs() < 1e-4, "areas {:?}, expected {expected:?}", s.object_areas_m2);
+    }
 }
 
 #[test]

@@ -102,7 +102,27 @@ mod tests {
         assert_eq!(a[0].len(), 128);
         let (same, different) = (sgam_metrics::kid::kid(&a, &b).unwrap(), sgam_metrics::kid::kid(&a, &c).unwrap());
         eprintln!("KID real/real {same:.5}, real/smeared {different:.5}");
-        assert!(different > 0.0 && different > 5.0 * same.abs(), "real/real {same}, real/smeared {different}");
+        // a permutation test: pool the two sets, re-split at random, and count the splits whose
+        // KID reaches the observed one. Real vs smeared: no random split comes close (the sets
+        // differ); real vs real: a random split often does (they do not)
+        let p_value = |x: &[Vec<f32>], y: &[Vec<f32>], observed: f64| {
+            let pooled: Vec<Vec<f32>> = x.iter().chain(y).cloned().collect();
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(17);
+            let trials = 200;
+            let reached = (0..trials)
+                .filter(|_| {
+                    let mut idx: Vec<usize> = (0..pooled.len()).collect();
+                    rand::seq::SliceRandom::shuffle(idx.as_mut_slice(), &mut rng);
+                    let (l, r) = idx.split_at(x.len());
+                    let pick = |ix: &[usize]| ix.iter().map(|&i| pooled[i].clone()).collect::<Vec<_>>();
+                    sgam_metrics::kid::kid(&pick(l), &pick(r)).unwrap() >= observed
+                })
+                .count();
+            (reached + 1) as f64 / (trials + 1) as f64
+        };
+        let (p_different, p_same) = (p_value(&a, &c, different), p_value(&a, &b, same));
+        assert!(p_different < 0.01, "real vs smeared: p = {p_different} (KID {different})");
+        assert!(p_same > 0.05, "real vs real: p = {p_same} (KID {same})");
     }
 
     #[test]

@@ -218,7 +218,33 @@ fn the_refiner_with_a_context_draws_every_missing_cell_once_and_keeps_observed_p
     assert_eq!(sorted.len(), committed.len(), "a cell committed twice");
     let want: Vec<usize> = (0..trace.missing_cells.len()).filter(|&i| trace.missing_cells[i]).collect();
     assert_eq!(sorted, want, "every missing cell committed once");
-    assert!(trace.passes.len() >= 2, "large holes take several passes");
+    // Per window, in order: the MaskGIT schedule over its core's missing cells (ceil(open /
+    // (passes - p)) on pass p, the rest on the last), passes = ceil(cells / cells_per_pass) at
+    // most max_passes, each pass committing cells of that core only. Here: 8 x 8 cells of 4
+    // pixels, the right half (4 columns) missing, cores of 8 - 2 x 2 = 4 cells per side: two
+    // cores of 16 cells, each ceil(16 / 3) = 6 -> 4 passes of 4.
+    let (cells, cols) = (&trace.missing_cells, 8usize);
+    let windows = context_windows(cells, [8, cols], 8, 2);
+    let mut schedule: Vec<(usize, [usize; 4])> = Vec::new();
+    for win in &windows {
+        let [y0, x0, h, w] = win.core;
+        let mut open = (y0..y0 + h).flat_map(|y| (x0..x0 + w).map(move |x| y * cols + x)).filter(|&i| cells[i]).count();
+        let passes = open.div_ceil(3).clamp(1, 4);
+        for p in 0..passes {
+            let n = if p + 1 == passes { open } else { open.div_ceil(passes - p) };
+            schedule.push((n, win.core));
+            open -= n;
+        }
+    }
+    assert_eq!(schedule.iter().map(|s| s.0).collect::<Vec<_>>(), [4; 8]);
+    assert_eq!(trace.passes.iter().map(Vec::len).collect::<Vec<_>>(), [4; 8], "cells committed per pass");
+    for (pass, (_, [y0, x0, h, w])) in trace.passes.iter().zip(&schedule) {
+        assert!(
+            pass.iter().all(|&i| (*y0..y0 + h).contains(&(i / cols)) && (*x0..x0 + w).contains(&(i % cols))),
+            "{pass:?} outside its window's core {:?}",
+            [y0, x0, h, w]
+        );
+    }
     for i in (0..(w * h) as usize).filter(|&i| !missing[i]) {
         assert_eq!(out.colour.data[i], frame.colour.data[i]);
     }

@@ -264,17 +264,59 @@ fn shadows_fall_away_from_the_sun() {
     assert!((f.frame.colour.at(32, 32)[0] - lit).abs() < 0.02);
 }
 
+/// Ray parameter range `(t0, t1)` where `o + t d` is inside the box, if any (slab test).
+fn ray_box(o: Vec3, d: Vec3, (lo, hi): (Vec3, Vec3)) -> Option<(f32, f32)> {
+    let (a, b) = ((lo - o) / d, (hi - o) / d);
+    let (t0, t1) = (a.min(b).max_element().max(0.0), a.max(b).min_element());
+    (t0 <= t1).then_some((t0, t1))
+}
+
 #[test]
 fn sky_pixels_have_invalid_depth_and_sky_id() {
     let scene = Scene::generate(2, &SceneConfig { object_count: 10, ..SceneConfig::default() });
     let r = Renderer::new(&scene);
-    // Looking at the horizon: the top half sees sky.
+    // Looking at the horizon from 11.7 m above the ground: f = 16 / tan 0.5 = 29.3 px, rows
+    // v <= 16 look up or level, and rows 17, 18, 19 meet the ground plane at y = 11.695 f /
+    // (v - 16) = 342, 171 and 114 m, beyond the ground square (|x|, |y| <= 100 m): rows 0-19
+    // are sky, rows 20-31 ground, unless an object is in the way.
     let k = Intrinsics::from_fov_x(32, 32, 1.0);
     let cam = Camera::new(k, Rigid3::look_at(Vec3::ZERO, Vec3::new(0.0, 1.0, 0.0), Vec3::Z).unwrap());
     let f = r.render(&cam, &RenderConfig::default());
-    assert_eq!(*f.object_id.at(16, 2), SKY_ID);
-    assert_eq!(*f.frame.depth_m.at(16, 2), 0.0);
-    assert!(f.frame.depth_m.at(16, 31).is_finite() && *f.frame.depth_m.at(16, 31) > 0.0);
+    let boxes: Vec<(Vec3, Vec3)> = scene.objects.iter().map(|o| o.aabb()).collect();
+    let (mut sky, mut ground, mut near_objects) = (0, 0, 0);
+    for v in 0..32 {
+        for u in 0..32 {
+            let (id, depth) = (*f.object_id.at(u, v), *f.frame.depth_m.at(u, v));
+            // every pixel: sky id exactly where the depth is invalid
+            assert_eq!(id == SKY_ID, depth == 0.0, "({u}, {v}): id {id}, depth {depth}");
+            let d = cam.world_from_camera.rotation * k.ray_z1(Vec2::new(u as f32, v as f32));
+            if boxes.iter().any(|b| ray_box(Vec3::ZERO, d, *b).is_some()) {
+                near_objects += 1;
+                continue; // an object's box is on the ray: it may or may not be hit
+            }
+            let t = (d.z < 0.0).then(|| GROUND_Z_M / d.z);
+            let on_ground =
+                t.is_some_and(|t| (d * t).x.abs() <= GROUND_HALF_EXTENT_M && (d * t).y.abs() <= GROUND_HALF_EXTENT_M);
+            if on_ground {
+                let t = t.unwrap();
+                assert_eq!(id, GROUND_ID, "({u}, {v})");
+                assert!((depth - t).abs() <= 1e-4 * t, "({u}, {v}): depth {depth}, ground plane at {t}");
+                ground += 1;
+            } else {
+                assert_eq!((id, depth), (SKY_ID, 0.0), "({u}, {v}) should see the sky");
+                sky += 1;
+            }
+        }
+    }
+    assert_eq!(near_objects, 0, "no object box on any ray of this view: every pixel is checked");
+    assert_eq!((sky, ground), (20 * 32, 12 * 32));
+    // rows 0-15: every sub-pixel sample looks up, so the colour is the sky's alone, one value
+    let first = *f.frame.colour.at(0, 0);
+    for v in 0..16 {
+        for u in 0..32 {
+            assert_eq!(*f.frame.colour.at(u, v), first, "({u}, {v})");
+        }
+    }
 }
 
 #[test]

@@ -28,14 +28,15 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
     assert_eq!(cfg["step"], 3);
     let log = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
     assert_eq!(log.lines().count(), 3, "{log}");
-    // Validation every 2 steps: only step 2's line has a PSNR, and it is one (colours in [0, 1]
-    // put it at 0 dB or more).
+    // Validation every 2 steps: only step 2's line has a PSNR. Its value: measured 12.30 dB
+    // for the tiny model after 2 steps from its seeded start (an output still far from the
+    // targets); the 1 dB either side is for float differences between platforms.
     for (k, line) in log.lines().enumerate() {
         let v: serde_json::Value = serde_json::from_str(line).unwrap();
         assert_eq!(v["step"], k as u64 + 1);
         let val = v["val_psnr"].as_f64();
         assert_eq!(val.is_some(), k + 1 == 2, "{line}");
-        assert!(val.is_none_or(|p| p.is_finite() && p >= 0.0), "{line}");
+        assert!(val.is_none_or(|p| (11.3..=13.3).contains(&p)), "{line}: measured 12.30 dB");
     }
     // stage 2 needs a starting model
     let out = sgam(&["train", "stage2", "--run", tmp.path().join("s2").to_str().unwrap(), "--steps", "1"]);
@@ -79,6 +80,21 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
     let overview = sgam_io::read_rgb(&world.join("overview.png")).unwrap();
     assert_eq!((overview.width, overview.height), (1280, 800));
     assert!(overview.data.iter().any(|p| p != &overview.data[0]), "the overview is one flat colour");
+    // The overview camera backs off until every corner of the mesh's bounding box projects
+    // inside 95 % of the view (u in 640 +- 608, v in 400 +- 380): the 32 px side bands and the
+    // 20 px top and bottom bands are the white background, every pixel of them. Inside, the
+    // shaded mesh covers a quarter of the picture (measured: 257,931 pixels, 25.2 %); at least
+    // 10 % must be mesh.
+    let white = |p: &[f32; 3]| p.iter().all(|c| *c == 1.0);
+    let mut mesh_pixels = 0usize;
+    for v in 0..800 {
+        for u in 0..1280 {
+            let inside = (32..1248).contains(&u) && (20..780).contains(&v);
+            assert!(inside || white(overview.at(u, v)), "overview pixel ({u}, {v}) outside the framed mesh");
+            mesh_pixels += usize::from(!white(overview.at(u, v)));
+        }
+    }
+    assert!(mesh_pixels >= 1280 * 800 / 10, "the overview shows the mesh in {mesh_pixels} pixels only");
     // one-step evaluation in its three modes: the missing pixels get the same model output
     // whether observed pixels are kept or regenerated; kept observed pixels score higher
     let eval = |mode: &[&str]| -> serde_json::Value {
@@ -95,13 +111,20 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
     assert_eq!(keep["mode"], "keep-observed");
     assert_eq!(auto["mode"], "autoencode");
     assert_eq!(keep["psnr_missing"], regen["psnr_missing"]);
-    assert!(keep["psnr_visible"].as_f64().unwrap() > regen["psnr_visible"].as_f64().unwrap());
+    // Values (sources: measured on this run; 1 dB either side for float differences between
+    // platforms): kept observed pixels are the guidance's own, so their PSNR does not depend
+    // on the model (measured 28.39 dB over the two 32 px target views); regenerated, they are
+    // the barely trained model's output (measured 12.90 dB).
+    let keep_visible = keep["psnr_visible"].as_f64().unwrap();
+    let regen_visible = regen["psnr_visible"].as_f64().unwrap();
+    assert!((27.39..=29.39).contains(&keep_visible), "{keep}: measured 28.39 dB");
+    assert!((11.90..=13.90).contains(&regen_visible), "{regen}: measured 12.90 dB");
     // Autoencoding hides nothing: every pixel is visible, so the whole-image PSNR is the
-    // visible-pixel PSNR (the same sum) and there is no missing-pixel score; colours in [0, 1]
-    // bound any PSNR below by 0 dB, and a model's output is never bit-identical (infinite).
+    // visible-pixel PSNR (the same sum) and there is no missing-pixel score. Its value is the
+    // same model's reconstruction (measured 12.94 dB; finite: never bit-identical).
     assert_eq!(auto["missing_fraction"].as_f64(), Some(0.0));
     let psnr = auto["psnr"].as_f64().unwrap();
-    assert!(psnr.is_finite() && psnr >= 0.0, "{auto}");
+    assert!((11.94..=13.94).contains(&psnr), "{auto}: measured 12.94 dB");
     assert_eq!(auto["psnr"], auto["psnr_visible"]);
     assert!(auto["psnr_missing"].is_null(), "{auto}");
     assert!(keep["missing_fraction"].as_f64().unwrap() > 0.0, "{keep}");
@@ -150,13 +173,29 @@ fn greedy_trajectory_steps_to_neighbouring_cells() {
     let t: serde_json::Value = serde_json::from_slice(&std::fs::read(world.join("transforms.json")).unwrap()).unwrap();
     let frames = t["frames"].as_array().unwrap();
     assert_eq!(frames.len(), 6);
-    let xy: Vec<(f64, f64)> = frames
+    // Each pose on the lattice: the seed moved by whole 0.408 m grid steps along world x and y
+    // (the CLEVR preset's step), in the 30 x 30 grid whose cell (0, 0) is the seed, at the seed's
+    // height.
+    let at = |f: &serde_json::Value, r: usize| f["transform_matrix"][r][3].as_f64().unwrap();
+    let cells: Vec<(i64, i64)> = frames
         .iter()
-        .map(|f| (f["transform_matrix"][0][3].as_f64().unwrap(), f["transform_matrix"][1][3].as_f64().unwrap()))
+        .map(|f| {
+            let (di, dj) = ((at(f, 0) - at(&frames[0], 0)) / 0.408, (at(f, 1) - at(&frames[0], 1)) / 0.408);
+            let cell = (di.round() as i64, dj.round() as i64);
+            assert!((di - cell.0 as f64).abs() < 1e-4 && (dj - cell.1 as f64).abs() < 1e-4, "{f} off the lattice");
+            assert!((at(f, 2) - at(&frames[0], 2)).abs() < 1e-6, "{f} left the seed's height");
+            assert!((0..30).contains(&cell.0) && (0..30).contains(&cell.1), "{cell:?} outside the grid");
+            cell
+        })
         .collect();
-    for (k, p) in xy.iter().enumerate().skip(1) {
-        assert!(!xy[..k].contains(p), "pose {k} revisits {p:?}");
-        // within one grid step (0.408 m, diagonals included) of an earlier pose
-        assert!(xy[..k].iter().any(|q| (p.0 - q.0).abs() < 0.41 && (p.1 - q.1).abs() < 0.41), "pose {k} jumps");
+    assert_eq!(cells[0], (0, 0));
+    // Each step moves to one of the 8 neighbours of the previous cell (in 5 steps on a 30 x 30
+    // grid from a corner a free neighbour always remains, so the frontier fallback never
+    // applies) and never comes back; which neighbour wins is checked against the map's coverage
+    // in the library's test (sgam-pipeline tests/generator.rs).
+    for (k, pair) in cells.windows(2).enumerate() {
+        let ((i0, j0), (i1, j1)) = (pair[0], pair[1]);
+        assert!((i1 - i0).abs() <= 1 && (j1 - j0).abs() <= 1 && pair[0] != pair[1], "step {}: {cells:?}", k + 1);
+        assert!(!cells[..=k].contains(&pair[1]), "step {} revisits {:?}: {cells:?}", k + 1, pair[1]);
     }
 }

@@ -94,4 +94,32 @@ fn a_table_along_two_trajectories_has_one_marked_row_for_each_and_labelled_overv
         let ink = band.iter().filter(|(x, y)| pic.get_pixel(*x, *y).0.iter().all(|c| *c < 60)).count();
         assert!(ink > 100, "panel {panel} has no label ({ink} dark pixels)");
     }
+    // Each panel's picture (480 x 300, a world's 1280 x 800 overview scaled by 3/8): the world's
+    // mesh, framed inside 95 % of the view (see the overview test in cli.rs), so bands of 10
+    // columns on each side and 6 rows at the top and bottom are white background (12 and 7.5
+    // scaled, less a pixel for the filter), and the mesh covers at least a quarter of it
+    // (measured: 38-41 % on the six panels).
+    let mut pictures = Vec::new();
+    for panel in 0..6u32 {
+        let (x0, y0) = ((panel % 3) * 480, (panel / 3) * panel_h);
+        let mut mesh = 0usize;
+        let mut picture = Vec::with_capacity(480 * 300);
+        for y in 0..300 {
+            for x in 0..480 {
+                let p = pic.get_pixel(x0 + x, y0 + y).0;
+                let border = !(10..470).contains(&x) || !(6..294).contains(&y);
+                assert!(!border || p == [255; 3], "panel {panel}: ({x}, {y}) = {p:?} outside the framed mesh");
+                mesh += usize::from(p != [255; 3]);
+                picture.push(p);
+            }
+        }
+        assert!(mesh >= 480 * 300 / 4, "panel {panel} shows a mesh in {mesh} pixels only");
+        pictures.push(picture);
+    }
+    // six worlds grown six ways: no two pictures alike
+    for i in 0..6 {
+        for j in 0..i {
+            assert!(pictures[i] != pictures[j], "panels {j} and {i} show the same picture");
+        }
+    }
 }

@@ -102,7 +102,61 @@ fn revisiting_the_seed_pose_reproduces_the_seed_frame() {
     let first = sgam_io::read_rgb(&run.join("rgb/00000.png")).unwrap();
     let last = sgam_io::read_rgb(&run.join("rgb/00006.png")).unwrap();
     let psnr = sgam_metrics::psnr(&first, &last, None).unwrap();
-    assert!(psnr >= 30.0, "revisit PSNR {psnr:.2} dB");
+    // Source of the bound: measured, 33.18 dB for this seed camera, loop, resolution and the
+    // null refiner (what a revisit loses is the 5 cm map's colour averaging and the 8-bit
+    // frames); 32 dB leaves about 1 dB for float differences between platforms.
+    assert!(psnr >= 32.0, "revisit PSNR {psnr:.2} dB, measured 33.18 dB");
+}
+
+#[test]
+fn the_within_temperature_reaches_the_refiner_and_changes_the_draws() {
+    // The bundled model at 128 px, 4 steps (at 32 and 64 px, runs with 0.2 and 3 drew identical
+    // frames: too few latent cells are missing there).
+    let tmp = tempfile::tempdir().unwrap();
+    let grow = |name: &str, within: &str| -> std::path::PathBuf {
+        let dir = tmp.path().join(name);
+        let d = dir.to_str().unwrap();
+        ok(&[
+            "generate",
+            "--out",
+            d,
+            "--res",
+            "128",
+            "--steps",
+            "4",
+            "--refiner",
+            "model",
+            "--within-temperature",
+            within,
+            "--no-video",
+        ]);
+        dir
+    };
+    let options = |dir: &Path| -> serde_json::Value {
+        let run: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("run.json")).unwrap()).unwrap();
+        run["config"]["refiner"]["options"].clone()
+    };
+    let frames = |dir: &Path| -> Vec<Vec<u8>> {
+        (1..=4).map(|i| std::fs::read(dir.join(format!("rgb/{i:05}.png"))).unwrap()).collect()
+    };
+    let (cold, again, hot, off) = (grow("w0.2", "0.2"), grow("w0.2-again", "0.2"), grow("w3", "3"), grow("w0", "0"));
+    // the option is the refiner's within-class temperature; 0 turns two-level sampling off
+    let within = |dir: &Path| options(dir)["within_class_temperature"].as_f64();
+    assert!((within(&cold).unwrap() - 0.2).abs() < 1e-6, "{}", options(&cold));
+    assert!((within(&hot).unwrap() - 3.0).abs() < 1e-6, "{}", options(&hot));
+    assert_eq!(within(&off), None, "{}", options(&off));
+    // only the within-class temperature differs between the runs' resolved options
+    let without = |dir: &Path| {
+        let mut o = options(dir);
+        o.as_object_mut().unwrap().remove("within_class_temperature");
+        o
+    };
+    assert_eq!(without(&cold), without(&hot));
+    assert_eq!(without(&cold), without(&off));
+    // the same option draws the same world (the run is seeded), another one other frames
+    assert!(frames(&cold) == frames(&again), "a run with the same options drew other frames");
+    assert!(frames(&cold) != frames(&hot), "--within-temperature 0.2 and 3 drew the same frames");
+    assert!(frames(&cold) != frames(&off), "two-level sampling on and off drew the same frames");
 }
 
 fn files_under(dir: &Path) -> Vec<std::path::PathBuf> {
