@@ -49,7 +49,7 @@ pub use images::{
     depth_to_mm, image_size, read_depth_png_mm, read_depth_png_scaled, read_rgb, to_srgb8, write_depth_png_mm,
     write_rgb_png, DEPTH_PNG_INVALID_MAX, DEPTH_PNG_MAX_MM,
 };
-pub use mesh::{read_ply, world_to_gltf, write_glb, write_mesh, write_obj, write_ply};
+pub use mesh::{glb_counts, read_ply, world_to_gltf, write_glb, write_mesh, write_obj, write_ply};
 pub use nerf::{read_nerf_transforms, write_nerf_transforms, NerfFrame, NerfTransforms};
 pub use npy::{read_npy_f32, read_npy_matrix, write_npy_f32, write_npy_f64};
 pub use poses::{

@@ -191,6 +191,9 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
         "map": { "blocks": generator.map.block_count(), "bytes": generator.map.memory_bytes(),
                  "vertices": mesh.positions.len(), "triangles": mesh.triangles.len() },
         "step_ms": timings.iter().map(|t| (t.total_ms * 1000.0).round() / 1000.0).collect::<Vec<_>>(),
+        // flatness over a long run at a glance: the median step of each 1000 steps (the last
+        // entry covers what remains)
+        "per_1000_median_ms": timings.chunks(1000).map(|c| median(&c.iter().map(|t| t.total_ms).collect::<Vec<_>>())).collect::<Vec<_>>(),
     });
     let bytes = serde_json::to_vec_pretty(&summary)?;
     sgam_io::write_atomic(&dir.join("run.json"), |w| std::io::Write::write_all(w, &bytes))?;

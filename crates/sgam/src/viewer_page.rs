@@ -129,34 +129,9 @@ pub fn base64(bytes: &[u8]) -> String {
     base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
-/// Vertex and triangle counts of a GLB written by `sgam_io::write_glb` (from its JSON chunk).
+/// Vertex and triangle counts of a GLB written by `sgam_io::write_glb`; a cut file is refused.
 pub fn glb_counts(path: &Path, glb: &[u8]) -> Result<(u64, u64)> {
-    let bad = || anyhow::anyhow!("{}: not a GLB file", path.display());
-    if glb.len() < 20 || &glb[0..4] != b"glTF" || &glb[16..20] != b"JSON" {
-        return Err(bad());
-    }
-    // the header's total length: a cut file (an interrupted copy) is refused, not embedded
-    let total = u32::from_le_bytes([glb[8], glb[9], glb[10], glb[11]]) as usize;
-    if total != glb.len() {
-        bail!(
-            "{}: a GLB of {} bytes whose header says {total}: the file is cut or damaged (an interrupted copy?)",
-            path.display(),
-            glb.len()
-        );
-    }
-    let len = u32::from_le_bytes([glb[12], glb[13], glb[14], glb[15]]) as usize;
-    let json: serde_json::Value = serde_json::from_slice(glb.get(20..20 + len).ok_or_else(bad)?)?;
-    let (mut vertices, mut triangles) = (0, 0);
-    for mesh in json["meshes"].as_array().into_iter().flatten() {
-        for prim in mesh["primitives"].as_array().into_iter().flatten() {
-            let count = |i: &serde_json::Value| {
-                i.as_u64().and_then(|i| json["accessors"][i as usize]["count"].as_u64()).unwrap_or(0)
-            };
-            vertices += count(&prim["attributes"]["POSITION"]);
-            triangles += count(&prim["indices"]) / 3;
-        }
-    }
-    Ok((vertices, triangles))
+    Ok(sgam_io::glb_counts(path, glb)?)
 }
 
 /// A frame as a JPEG data URI at most [`THUMB_SIDE`] pixels a side.

@@ -63,6 +63,15 @@ fn oracle_run_reproduces_ground_truth_and_mesh_matches_scene() {
     for f in ["mesh.glb", "run.json", "snapshot.bin", "map.bin", "rgb/00008.png", "depth/00008.npy"] {
         assert!(run.join(f).exists(), "missing {f}");
     }
+    // run.json's per-1000-step medians: one chunk here, the median of every step's time
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    let mut steps: Vec<f64> = summary["step_ms"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    steps.sort_by(f64::total_cmp);
+    let n = steps.len();
+    let median = if n % 2 == 1 { steps[n / 2] } else { 0.5 * (steps[n / 2 - 1] + steps[n / 2]) };
+    let per = summary["per_1000_median_ms"].as_array().unwrap();
+    assert_eq!(per.len(), 1, "{per:?}");
+    assert!((per[0].as_f64().unwrap() - median).abs() < 0.01, "{per:?} against the median {median} of {n} steps");
 }
 
 #[test]
