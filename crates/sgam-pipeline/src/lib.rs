@@ -47,8 +47,8 @@ pub use keyframes::{frame_file_names, quantise_colour, Keyframes};
 pub use pairs::SynthPairs;
 pub use poses::{read_pose_file, PoseSource, PrecomputedPoses, TrajectorySpec, MAX_EXTENT_M};
 pub use refiners::{
-    build_refiner, model_refiner, push_pull_fill, sampling, AnyRefiner, NullRefiner, OracleRefiner, RefinerSpec,
-    BUNDLED_MODEL,
+    build_refiner, model_refiner, push_pull_fill, sampling, seed_reconstruction_psnr, AnyRefiner, NullRefiner,
+    OracleRefiner, RefinerSpec, BUNDLED_MODEL, DOMAIN_PSNR_DB,
 };
 pub use run::{Generated, Quiet, Resume, RunObserver};
 pub use seeds::{

@@ -74,6 +74,9 @@ impl RunObserver for CliObserver<'_> {
             seed.camera.intrinsics.height,
             self.dir.display()
         );
+        if !resumed && seed.renderer.is_none() {
+            domain_check(self.config, seed);
+        }
         let (on, port, every) = self.view;
         self.live = Some(LiveView::start_if(on, self.dir, port, every).map_err(output_error)?);
         let pb = progress::bar(total as u64 - 1, "steps");
@@ -107,6 +110,24 @@ impl RunObserver for CliObserver<'_> {
             sgam_io::write_mesh(&self.dir.join(format!("mesh-{i:05}.ply")), &generator.map.extract_mesh())?;
         }
         Ok(())
+    }
+}
+
+/// Says how far a seed from outside the synthetic world is from what the model learned (its
+/// reconstruction PSNR against [`sgam_pipeline::DOMAIN_PSNR_DB`]), and what to do about it.
+fn domain_check(config: &RunConfig, seed: &Seed) {
+    let sgam_pipeline::RefinerSpec::Model { model, .. } = &config.refiner else { return };
+    match sgam_pipeline::seed_reconstruction_psnr(model.as_deref(), seed) {
+        Ok(psnr) if psnr < sgam_pipeline::DOMAIN_PSNR_DB => eprintln!(
+            "warning: the model reconstructs this seed at {psnr:.1} dB, far below the ~30 dB of the synthetic \
+             CLEVR-Infinite frames it was trained on: it has not seen scenes like this one, and what it invents \
+             will look like CLEVR's grey floor and coloured solids. Judge the new area by eye (--guidance-png \
+             shows every step), or grow with --refiner null for a neutral fill"
+        ),
+        Ok(psnr) => {
+            eprintln!("domain check: the model reconstructs this seed at {psnr:.1} dB (synthetic CLEVR frames: ~30 dB)")
+        }
+        Err(e) => eprintln!("domain check skipped: {e}"),
     }
 }
 
