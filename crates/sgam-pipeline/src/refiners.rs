@@ -235,6 +235,36 @@ impl Refiner for OracleRefiner {
     }
 }
 
+/// Colour PSNR (dB) below which a seed counts as far from the bundled model's training data:
+/// the model reconstructs held-out synthetic CLEVR frames at about 30 dB (docs/MODEL.md,
+/// "autoencode"), and a seed it cannot reconstruct within 5 dB of that is not what it learned.
+/// Measured with the bundled model: the CLEVR template seed 30.3 dB, the three shared Google Earth
+/// seeds 12.7-12.8 dB, a 7-Scenes kitchen frame 13.7 dB. (At the model's 256 px; a CLEVR frame
+/// of 64 px, whose objects are a few pixels, reconstructs at about 21 dB.)
+pub const DOMAIN_PSNR_DB: f64 = 25.0;
+
+/// How far `seed` is from what the model at `model` (`None`: the bundled one) was trained on:
+/// the colour PSNR (dB) of its reconstruction of the whole seed frame (nothing missing, every
+/// pixel regenerated, argmin codes). Compare with [`DOMAIN_PSNR_DB`].
+pub fn seed_reconstruction_psnr(model: Option<&Path>, seed: &Seed) -> Result<f64> {
+    let options = RefinerOptions { sampling: Sampling::Argmin, keep_observed: false, ..RefinerOptions::default() };
+    let mut refiner = model_refiner(model, options)?;
+    let frame = &seed.frame;
+    let nothing = vec![false; frame.colour.data.len()];
+    let out = refiner
+        .complete_at(frame, &nothing, Some(&seed.camera.intrinsics))
+        .map_err(|e| PipelineError::Refiner(Box::new(e)))?;
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for (a, b) in out.colour.data.iter().zip(&frame.colour.data) {
+        for c in 0..3 {
+            se += f64::from(a[c] - b[c]).powi(2);
+        }
+        n += 3;
+    }
+    let mse = se / n.max(1) as f64;
+    Ok(if mse > 0.0 { 10.0 * (1.0 / mse).log10() } else { f64::INFINITY })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -296,34 +326,4 @@ mod tests {
         *kept.at_mut(9, 6) = *frame.depth_m.at(9, 6);
         assert_eq!(kept, frame.depth_m);
     }
-}
-
-/// Colour PSNR (dB) below which a seed counts as far from the bundled model's training data:
-/// the model reconstructs held-out synthetic CLEVR frames at about 30 dB (docs/MODEL.md,
-/// "autoencode"), and a seed it cannot reconstruct within 5 dB of that is not what it learned.
-/// Measured with the bundled model: the CLEVR template seed 30.3 dB, the three shared Google Earth
-/// seeds 12.7-12.8 dB, a 7-Scenes kitchen frame 13.7 dB. (At the model's 256 px; a CLEVR frame
-/// of 64 px, whose objects are a few pixels, reconstructs at about 21 dB.)
-pub const DOMAIN_PSNR_DB: f64 = 25.0;
-
-/// How far `seed` is from what the model at `model` (`None`: the bundled one) was trained on:
-/// the colour PSNR (dB) of its reconstruction of the whole seed frame (nothing missing, every
-/// pixel regenerated, argmin codes). Compare with [`DOMAIN_PSNR_DB`].
-pub fn seed_reconstruction_psnr(model: Option<&Path>, seed: &Seed) -> Result<f64> {
-    let options = RefinerOptions { sampling: Sampling::Argmin, keep_observed: false, ..RefinerOptions::default() };
-    let mut refiner = model_refiner(model, options)?;
-    let frame = &seed.frame;
-    let nothing = vec![false; frame.colour.data.len()];
-    let out = refiner
-        .complete_at(frame, &nothing, Some(&seed.camera.intrinsics))
-        .map_err(|e| PipelineError::Refiner(Box::new(e)))?;
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for (a, b) in out.colour.data.iter().zip(&frame.colour.data) {
-        for c in 0..3 {
-            se += f64::from(a[c] - b[c]).powi(2);
-        }
-        n += 3;
-    }
-    let mse = se / n.max(1) as f64;
-    Ok(if mse > 0.0 { 10.0 * (1.0 / mse).log10() } else { f64::INFINITY })
 }
