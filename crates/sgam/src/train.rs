@@ -29,56 +29,22 @@ pub enum Preset {
 
 /// `sgam train` stages.
 #[derive(Debug, Subcommand)]
+#[command(mut_subcommands(crate::train_common::with_loop_defaults))]
 pub enum TrainCommand {
     /// Stage 1: autoencode clean RGB-D (codebook, encoder and decoder all train).
-    #[command(
-        mut_arg("steps", |a| a.default_value("20000").required(false)),
-        mut_arg("batch", |a| a.default_value("4").required(false)),
-        mut_arg("lr", |a| a.default_value("0.0002").required(false)),
-        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
-        mut_arg("scenes", |a| a.default_value("512").required(false))
-    )]
     Stage1(TrainArgs),
     /// Stage 2: fine-tune the encoder and mask conv on incomplete -> complete pairs built by the
     /// generator's own render + warp path; codebook, quant convs and decoder frozen.
-    #[command(
-        mut_arg("steps", |a| a.default_value("20000").required(false)),
-        mut_arg("batch", |a| a.default_value("4").required(false)),
-        mut_arg("lr", |a| a.default_value("0.0002").required(false)),
-        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
-        mut_arg("scenes", |a| a.default_value("512").required(false))
-    )]
     Stage2(TrainArgs),
     /// Generative stage 2: train the encoder to predict a distribution over codebook indices
     /// (cross-entropy against the codes the frozen encoder gives the clean target), on pairs
     /// recorded from the generator itself running with the oracle on training scenes.
-    #[command(
-        mut_arg("steps", |a| a.default_value("12000").required(false)),
-        mut_arg("batch", |a| a.default_value("8").required(false)),
-        mut_arg("lr", |a| a.default_value("0.0003").required(false)),
-        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
-        mut_arg("scenes", |a| a.default_value("100000").required(false))
-    )]
     Sampler(crate::train_sampler::SamplerArgs),
     /// Scene-wide context: a transformer over the code grid that completes a hole knowing all of
     /// it (MaskGIT-style, on the frozen sampler's features); everything else stays.
-    #[command(
-        mut_arg("steps", |a| a.default_value("8000").required(false)),
-        mut_arg("batch", |a| a.default_value("16").required(false)),
-        mut_arg("lr", |a| a.default_value("0.0005").required(false)),
-        mut_arg("ckpt_every", |a| a.default_value("250").required(false)),
-        mut_arg("scenes", |a| a.default_value("100000").required(false))
-    )]
     Context(crate::train_context::ContextArgs),
     /// Fine-tune the decoder on whole frames (the codes, encoder and codebook stay): a decoder
     /// trained on crops cannot tell how far the ground is at a frame's border.
-    #[command(
-        mut_arg("steps", |a| a.default_value("1200").required(false)),
-        mut_arg("batch", |a| a.default_value("4").required(false)),
-        mut_arg("lr", |a| a.default_value("0.0001").required(false)),
-        mut_arg("ckpt_every", |a| a.default_value("100").required(false)),
-        mut_arg("scenes", |a| a.default_value("100000").required(false))
-    )]
     Decoder(crate::train_decoder::DecoderArgs),
     /// Write a run's weights as a shippable model file (f16 by default, config embedded).
     #[command(

@@ -1,7 +1,7 @@
 //! The options every trainer shares (`sgam train stage1 | stage2 | sampler | context |
 //! decoder`): one declaration, one check. Each trainer sets its own defaults for the steps, the
-//! batch, the learning rate, the checkpoint interval and the scenes with clap's `mut_arg` on its
-//! subcommand (`train.rs`), so `--help` shows the default of the command it documents.
+//! batch, the learning rate, the checkpoint interval and the scenes ([`with_loop_defaults`]), so
+//! `--help` shows the default of the command it documents.
 
 use std::path::PathBuf;
 
@@ -60,6 +60,26 @@ impl TrainLoopArgs {
         in_range("--scenes", self.scenes, 1..=HELD_OUT_SEED_BASE - 1)?;
         Ok(())
     }
+}
+
+/// Each trainer's defaults of the shared options: (steps, batch, lr, ckpt_every, scenes).
+fn loop_defaults(trainer: &str) -> Option<(&'static str, &'static str, &'static str, &'static str, &'static str)> {
+    Some(match trainer {
+        "stage1" | "stage2" => ("20000", "4", "0.0002", "250", "512"),
+        "sampler" => ("12000", "8", "0.0003", "250", "100000"),
+        "context" => ("8000", "16", "0.0005", "250", "100000"),
+        "decoder" => ("1200", "4", "0.0001", "100", "100000"),
+        _ => return None,
+    })
+}
+
+/// A trainer's subcommand with [`loop_defaults`] set on the shared options (`sgam train`'s
+/// `mut_subcommands`); other subcommands unchanged.
+pub fn with_loop_defaults(cmd: clap::Command) -> clap::Command {
+    let Some((steps, batch, lr, ckpt_every, scenes)) = loop_defaults(cmd.get_name()) else { return cmd };
+    [("steps", steps), ("batch", batch), ("lr", lr), ("ckpt_every", ckpt_every), ("scenes", scenes)]
+        .into_iter()
+        .fold(cmd, |cmd, (id, v)| cmd.mut_arg(id, |a| a.default_value(v).required(false)))
 }
 
 #[cfg(test)]
