@@ -23,6 +23,7 @@
 //! - **Determinism**: weights are initialised from a seed; sampling and training draw from a
 //!   seeded `ChaCha8Rng` passed in.
 
+pub mod bank;
 pub mod blocks;
 pub mod checkpoint;
 pub mod config;

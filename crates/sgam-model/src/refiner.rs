@@ -12,6 +12,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
+use crate::bank::{BankDraw, BankFill, BankSearch, CodeBank};
 use crate::config::ModelConfig;
 use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
@@ -150,6 +151,10 @@ pub struct VqRefiner {
     device: Device,
     trace: SamplingTrace,
     plain_codes: Option<Vec<bool>>,
+    /// Completion by quilting from true frames' codes ([`crate::bank`]) instead of sampling.
+    bank: Option<std::sync::Arc<CodeBank>>,
+    /// Per code: mean colour and normalised disparity of its decoded patch ([`Self::code_looks`]).
+    looks: Option<Vec<[f32; 4]>>,
 }
 
 /// What the last [`VqRefiner::complete_at`] call chose (for tests and diagnostics).
@@ -163,13 +168,25 @@ pub struct SamplingTrace {
     pub missing_cells: Vec<bool>,
     /// Tokens the context transformer saw in each pass (empty without a context).
     pub context_tokens: Vec<usize>,
+    /// How the code bank filled each hole (empty without a bank).
+    pub bank_draws: Vec<BankDraw>,
 }
 
 impl VqRefiner {
     /// Wraps a model.
     pub fn new(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device) -> Self {
         let rng = ChaCha8Rng::seed_from_u64(options.seed);
-        Self { model: model.valid(), config, options, rng, device, trace: SamplingTrace::default(), plain_codes: None }
+        Self {
+            model: model.valid(),
+            config,
+            options,
+            rng,
+            device,
+            trace: SamplingTrace::default(),
+            plain_codes: None,
+            bank: None,
+            looks: None,
+        }
     }
 
     /// Loads from a safetensors file (+ optional config JSON file) on the default device.
@@ -270,6 +287,36 @@ impl VqRefiner {
             }
             _ => None,
         };
+        let bank_fits = self.bank.as_ref().is_some_and(|b| b.rows == ch && b.cols == cw);
+        if sampler && n_missing > 0 && bank_fits {
+            let mut codes = self.most_likely_codes(&work, &mask, &intrinsics, [ch, cw])?;
+            self.code_looks()?;
+            let (bank, looks) = (self.bank.as_deref(), self.looks.as_deref());
+            let fill = match (bank, looks) {
+                (Some(bank), Some(looks)) => {
+                    bank.fill(&mut codes, &cells, looks, &BankSearch::default(), &mut self.rng)
+                }
+                _ => BankFill::default(),
+            };
+            let full = self.decode_codes(&codes, ch, cw)?;
+            let mut out = crop_frame(&full, w, h);
+            if self.options.keep_observed {
+                keep_observed(&mut out, frame, missing);
+            }
+            // deferred cells keep their provisional colour and no depth: nothing is fused there
+            for &c in &fill.deferred {
+                let (cy, cx) = (c / cw, c % cw);
+                for y in cy * f..((cy + 1) * f).min(h) {
+                    for x in cx * f..((cx + 1) * f).min(w) {
+                        if missing[y * w + x] {
+                            out.depth_m.data[y * w + x] = 0.0;
+                        }
+                    }
+                }
+            }
+            self.trace = SamplingTrace { codes, missing_cells: cells, bank_draws: fill.draws, ..Default::default() };
+            return Ok(out);
+        }
         if sampler && n_missing > 0 && self.model.context.is_some() {
             let trace = self.draw_with_context(&work, &mask, &intrinsics, &cells, [ch, cw], within)?;
             let full = self.decode_codes(&trace.codes, ch, cw)?;
@@ -352,7 +399,7 @@ impl VqRefiner {
             }
         }
         let full = self.decode_codes(&codes, ch, cw)?;
-        self.trace = SamplingTrace { codes, passes: passes_log, missing_cells: cells, context_tokens: Vec::new() };
+        self.trace = SamplingTrace { codes, passes: passes_log, missing_cells: cells, ..Default::default() };
         let mut out = crop_frame(&full, w, h);
         if self.options.keep_observed {
             keep_observed(&mut out, frame, missing);
@@ -519,7 +566,126 @@ impl VqRefiner {
                 tokens.push(n);
             }
         }
-        Ok(SamplingTrace { codes, passes: passes_log, missing_cells: Vec::new(), context_tokens: tokens })
+        Ok(SamplingTrace {
+            codes,
+            passes: passes_log,
+            missing_cells: Vec::new(),
+            context_tokens: tokens,
+            bank_draws: Vec::new(),
+        })
+    }
+
+    /// Completes holes from `bank` ([`crate::bank`]) instead of sampling codes, when the bank's
+    /// grid is the frame's (other sizes keep the learned sampler). The bank must index this
+    /// model's codebook.
+    pub fn set_bank(&mut self, bank: Option<std::sync::Arc<CodeBank>>) -> Result<(), ModelError> {
+        if let Some(b) = &bank {
+            if b.n_embed != self.config.n_embed {
+                return Err(ModelError::shape("the code bank's codebook", self.config.n_embed, b.n_embed));
+            }
+            let ours = self.codebook_crc32()?;
+            if b.codebook_crc32 != ours {
+                return Err(ModelError::config(
+                    "code bank",
+                    format!(
+                        "built with another model's codebook (CRC {:08x}, this model's {ours:08x}); \
+                         build one for this model with `sgam train bank --model ...`",
+                        b.codebook_crc32
+                    ),
+                ));
+            }
+        }
+        self.bank = bank;
+        Ok(())
+    }
+
+    /// CRC-32 of the codebook (its f32 values, little-endian): what a [`CodeBank`] is tied to.
+    pub fn codebook_crc32(&self) -> Result<u32, ModelError> {
+        let w: Vec<f32> = to_host(self.model.quantize.embedding.weight.val())?;
+        let bytes: Vec<u8> = w.iter().flat_map(|v| v.to_le_bytes()).collect();
+        Ok(crc32fast::hash(&bytes))
+    }
+
+    /// The code bank in use, if any.
+    pub fn bank(&self) -> Option<&CodeBank> {
+        self.bank.as_deref()
+    }
+
+    /// The model's most likely code of every latent cell of a complete frame (the encoder's
+    /// argmin, or the code head's argmax): what a bank stores. Sides must be multiples of the
+    /// downsampling factor.
+    pub fn frame_codes(&mut self, frame: &RgbdFrame, intrinsics: &Intrinsics) -> Result<Vec<u32>, ModelError> {
+        let (w, h, f) = (frame.width() as usize, frame.height() as usize, self.config.downsample_factor());
+        if !w.is_multiple_of(f) || !h.is_multiple_of(f) {
+            return Err(ModelError::shape(
+                "a frame to encode",
+                format!("sides that are multiples of {f}"),
+                format!("{w}x{h}"),
+            ));
+        }
+        let mask = vec![false; w * h];
+        self.most_likely_codes(frame, &mask, intrinsics, [h / f, w / f])
+    }
+
+    /// One encoder pass over a (padded) frame: the most likely code of every cell.
+    fn most_likely_codes(
+        &mut self,
+        frame: &RgbdFrame,
+        mask: &[bool],
+        intrinsics: &Intrinsics,
+        [ch, cw]: [usize; 2],
+    ) -> Result<Vec<u32>, ModelError> {
+        let x = pack_input(&[frame], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
+        let k = self.config.n_embed;
+        let dist = match self.model.code_logits(x.clone()) {
+            Some(logits) => to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]).neg())?,
+            None => {
+                let z = self.model.encode(x);
+                let d = self.config.embed_dim;
+                let rows = z.permute([0, 2, 3, 1]).reshape([ch * cw, d]);
+                to_host(squared_distances(rows, self.model.quantize.embedding.weight.val()))?
+            }
+        };
+        Ok(select_codes(&dist, ch * cw, k, None, Sampling::Argmin, &mut self.rng))
+    }
+
+    /// Per code, how it looks: mean colour (sRGB, `[0, 1]`) and mean normalised disparity
+    /// (`[0, 1]`, near = 1) of the centre of its decoded patch (each code decoded as a uniform
+    /// 4x4-cell grid, computed once, 16 decoder calls). The bank matches holes with it.
+    pub fn code_looks(&mut self) -> Result<&[[f32; 4]], ModelError> {
+        if self.looks.is_none() {
+            let k = self.config.n_embed;
+            let f = self.config.downsample_factor();
+            let (g, batch) = (4usize, 64usize);
+            let depth = self.config.depth;
+            let mut looks = Vec::with_capacity(k);
+            for start in (0..k).step_by(batch) {
+                let codes: Vec<u32> = (start..(start + batch).min(k)).map(|c| c as u32).collect();
+                let b = codes.len();
+                let idx: Vec<u32> = codes.iter().flat_map(|&c| std::iter::repeat_n(c, g * g)).collect();
+                let rows = self.model.quantize.lookup(&idx, &self.device);
+                let [_, d] = rows.dims();
+                let z_q = rows.reshape([b, g, g, d]).permute([0, 3, 1, 2]);
+                for frame in unpack(self.model.decode(z_q), &depth)? {
+                    let w = frame.width() as usize;
+                    let mut sum = [0.0f32; 4];
+                    let mut n = 0.0f32;
+                    for y in f..(g - 1) * f {
+                        for x in f..(g - 1) * f {
+                            let c = frame.colour.data[y * w + x];
+                            let s = normalised_disparity(frame.depth_m.data[y * w + x], &depth);
+                            for (acc, v) in sum.iter_mut().zip([c[0], c[1], c[2], s]) {
+                                *acc += v;
+                            }
+                            n += 1.0;
+                        }
+                    }
+                    looks.push(sum.map(|v| v / n.max(1.0)));
+                }
+            }
+            self.looks = Some(looks);
+        }
+        Ok(self.looks.as_deref().unwrap_or(&[]))
     }
 
     /// Which codes are plain (grey: CLEVR's ground) rather than coloured, for two-level
@@ -625,6 +791,15 @@ pub fn context_windows(missing: &[bool], [rows, cols]: [usize; 2], window: usize
 /// (all of them codes the frozen encoder gives to grey cells of real frames) and a spread of
 /// coloured ones above (docs/MODEL.md, session 12).
 pub const PLAIN_CODE_SATURATION: f32 = 0.03;
+/// `s` of [`DepthCoding`](crate::DepthCoding) for planar depth `z` (metres), clamped to `[0, 1]`;
+/// 0 where the depth is missing.
+fn normalised_disparity(z: f32, coding: &crate::DepthCoding) -> f32 {
+    if !(z > 0.0 && z.is_finite()) {
+        return 0.0;
+    }
+    let (a, b) = (1.0 / coding.near_m, 1.0 / coding.far_m);
+    ((1.0 / (z + coding.offset_m) - b) / (a - b)).clamp(0.0, 1.0)
+}
 
 /// HSV saturation `(max - min) / max` of a linear RGB colour in [0, 1] (0 for black).
 fn saturation(c: [f32; 3]) -> f32 {

@@ -24,6 +24,7 @@
 //! - Conventions follow `sgam-core`: OpenCV camera axes, `world_from_camera` poses, planar depth
 //!   in metres, sRGB colour in `[0, 1]`; every random draw comes from a seed passed in.
 
+pub mod bank;
 pub mod codepairs;
 mod config;
 mod error;
@@ -39,6 +40,7 @@ mod seeds;
 pub mod settings;
 pub mod snapshot;
 
+pub use bank::BankSpec;
 pub use config::{OutputSettings, RunConfig, MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION};
 pub use error::{PipelineError, Result};
 pub use generator::{clevr_generator_config, render_guidance, GeneratorConfig, StepTimings, WorldGenerator};
@@ -48,7 +50,7 @@ pub use pairs::SynthPairs;
 pub use poses::{read_pose_file, PoseSource, PrecomputedPoses, TrajectorySpec, MAX_EXTENT_M};
 pub use refiners::{
     build_refiner, model_refiner, push_pull_fill, sampling, seed_reconstruction_psnr, AnyRefiner, NullRefiner,
-    OracleRefiner, RefinerSpec, BUNDLED_MODEL, DOMAIN_PSNR_DB,
+    OracleRefiner, RefinerSpec, BUNDLED_BANK, BUNDLED_MODEL, DOMAIN_PSNR_DB,
 };
 pub use run::{Generated, Quiet, Resume, RunObserver};
 pub use seeds::{

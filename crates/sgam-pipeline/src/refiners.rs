@@ -16,11 +16,16 @@ use sgam_model::{ModelError, RefinerOptions, Sampling, VqRefiner};
 use sgam_synth::{RenderConfig, Renderer};
 
 use crate::error::config_error;
+use crate::BankSpec;
 use crate::{PipelineError, Result, Seed};
 
 /// The bundled compact model (f16 safetensors, config embedded; see docs/MODEL.md), compiled
 /// into the library so an installed `sgam` needs no files next to it.
 pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/compact.safetensors");
+
+/// The code bank built with the bundled model (`sgam train bank`, 4,096 frames of training
+/// scenes; see docs/MODEL.md), compiled in like the model.
+pub const BUNDLED_BANK: &[u8] = include_bytes!("../../../models/bank.bin");
 
 /// Which refiner completes the guidance, resolved.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -32,6 +37,10 @@ pub enum RefinerSpec {
         model: Option<PathBuf>,
         /// Sampling, seed and what to keep from the guidance.
         options: RefinerOptions,
+        /// The code bank that completes holes instead of sampling (runs before the bank
+        /// existed had none).
+        #[serde(default)]
+        bank: BankSpec,
     },
     /// [`NullRefiner`]: holes filled by push-pull (`fill`), or the guidance as it is.
     Null {
@@ -43,14 +52,23 @@ pub enum RefinerSpec {
 }
 
 impl RefinerSpec {
-    /// CRC-32 of the model file the refiner loads (`None` for the stand-ins): a resumed run
-    /// refuses a file that changed since it started.
+    /// CRC-32 of the model file the refiner loads, and of its code bank when it has one
+    /// (`None` for the stand-ins): a resumed run refuses a file that changed since it started.
     pub fn model_crc32(&self) -> Result<Option<u32>> {
         Ok(match self {
-            RefinerSpec::Model { model: Some(p), .. } => Some(crc32fast::hash(
-                &std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?,
-            )),
-            RefinerSpec::Model { model: None, .. } => Some(crc32fast::hash(BUNDLED_MODEL)),
+            RefinerSpec::Model { model, bank, .. } => {
+                let bytes = match model {
+                    Some(p) => std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?,
+                    None => BUNDLED_MODEL.to_vec(),
+                };
+                let mut h = crc32fast::Hasher::new();
+                h.update(&bytes);
+                // a run without a bank keeps the model file's own CRC
+                if let Some(b) = bank.crc32()? {
+                    h.update(&b.to_le_bytes());
+                }
+                Some(h.finalize())
+            }
             RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,
         })
     }
@@ -81,8 +99,13 @@ pub fn model_refiner(model: Option<&Path>, options: RefinerOptions) -> Result<Vq
 /// the seed's synthetic world).
 pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
     Ok(match spec {
-        RefinerSpec::Model { model, options } => {
-            AnyRefiner::Model(Box::new(model_refiner(model.as_deref(), *options)?))
+        RefinerSpec::Model { model, options, bank } => {
+            let mut refiner = model_refiner(model.as_deref(), *options)?;
+            refiner.set_bank(bank.load()?).map_err(|e| match bank {
+                BankSpec::File(p) => PipelineError::Model(e.in_file(p)),
+                _ => PipelineError::Model(e),
+            })?;
+            AnyRefiner::Model(Box::new(refiner))
         }
         RefinerSpec::Null { fill } => AnyRefiner::Null(NullRefiner { fill: *fill }),
         RefinerSpec::Oracle => {

@@ -17,6 +17,7 @@ use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
 
 use crate::error::config_error;
+use crate::BankSpec;
 use crate::{
     check_intrinsics, OutputSettings, RefinerSpec, Result, RunConfig, SeedSpec, TrajectorySpec, HELD_OUT_SEED_BASE,
     MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION,
@@ -323,6 +324,13 @@ pub struct RefinerSettings {
     /// Ablation: no refinement; the guidance (with holes) is fused as it is.
     #[arg(long)]
     pub no_refine: bool,
+    /// Complete each hole from a bank of true frames' codes instead of sampling it cell by cell
+    /// (none, bundled, or a file from `sgam train bank`): the hole takes the codes of the real
+    /// frame whose cells around it look most like the visible ones, so it holds whole objects;
+    /// thin bands along the frame's border wait until they are 3 cells wide. The bank must
+    /// come from the same model (checked). CLEVR-Infinite seeds only: its frames are synthetic.
+    #[arg(long, value_name = "none|bundled|FILE", default_value_t = BankSpec::None)]
+    pub bank: BankSpec,
 }
 
 impl Default for RefinerSettings {
@@ -334,7 +342,7 @@ impl Default for RefinerSettings {
 impl RefinerSettings {
     /// The refiner `kind` (the bundled model for the learned one).
     pub fn kind(kind: RefinerKind) -> Self {
-        Self { refiner: kind, model: None, no_refine: false }
+        Self { refiner: kind, model: None, no_refine: false, bank: BankSpec::None }
     }
 
     /// The refiner that runs: `--no-refine` makes it the stand-in that fills nothing.
@@ -351,15 +359,19 @@ impl RefinerSettings {
         matches!(self.effective(), RefinerKind::Null | RefinerKind::Oracle)
     }
 
-    /// Refuses `--model` with a stand-in refiner, which would ignore it.
+    /// Refuses `--model` and `--bank` with a stand-in refiner, which would ignore them.
     pub fn validate(&self) -> Result<()> {
-        if self.is_stand_in() && self.model.is_some() {
-            let stand_in = if self.no_refine {
-                "--no-refine".to_string()
-            } else {
-                format!("--refiner {:?}", self.refiner).to_lowercase()
-            };
-            config_error!("--model is used only by the learned refiner; this run uses a stand-in ({stand_in}) and would ignore it");
+        let stand_in = if self.no_refine {
+            "--no-refine".to_string()
+        } else {
+            format!("--refiner {:?}", self.refiner).to_lowercase()
+        };
+        for (option, given) in [("--model", self.model.is_some()), ("--bank", self.bank != BankSpec::None)] {
+            if self.is_stand_in() && given {
+                config_error!(
+                    "{option} is used only by the learned refiner; this run uses a stand-in ({stand_in}) and would ignore it"
+                );
+            }
         }
         Ok(())
     }
@@ -684,9 +696,11 @@ impl RunSettings {
     /// stand-in fills holes by push-pull, the model samples as [`SamplingSettings`] says.
     pub fn refiner_spec(&self) -> RefinerSpec {
         match self.refiner.effective() {
-            RefinerKind::Auto | RefinerKind::Model => {
-                RefinerSpec::Model { model: self.refiner.model.clone(), options: self.sampling.refiner_options() }
-            }
+            RefinerKind::Auto | RefinerKind::Model => RefinerSpec::Model {
+                model: self.refiner.model.clone(),
+                options: self.sampling.refiner_options(),
+                bank: self.refiner.bank.clone(),
+            },
             RefinerKind::Null => RefinerSpec::Null { fill: !self.refiner.no_refine },
             RefinerKind::Oracle => RefinerSpec::Oracle,
         }
@@ -697,6 +711,14 @@ impl RunSettings {
     pub fn resolve(&self) -> Result<RunConfig> {
         let seed = self.seed.spec()?;
         let preset = seed.preset();
+        let uses_model = matches!(self.refiner.effective(), RefinerKind::Auto | RefinerKind::Model);
+        if uses_model && self.refiner.bank != BankSpec::None && !matches!(seed, crate::SeedSpec::Synthetic { .. }) {
+            config_error!(
+                "--bank {}: a code bank holds frames of the synthetic CLEVR-Infinite world, and this seed is not one \
+                 (leave out --bank)",
+                self.refiner.bank
+            );
+        }
         let trajectory = self.path.spec(self.steps, preset.step_m)?;
         let m = &self.map;
         // the oracle is the true world: its pixels are never changed
@@ -777,7 +799,9 @@ mod tests {
         assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 5.0, 5));
         assert_eq!(c.map, crate::clevr_generator_config(0).tsdf, "generation and training share the map");
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (Some(1.0), true, true));
-        let RefinerSpec::Model { model: None, options } = c.refiner else { panic!("{:?}", c.refiner) };
+        let RefinerSpec::Model { model: None, options, bank: BankSpec::None } = c.refiner else {
+            panic!("{:?}", c.refiner)
+        };
         assert_eq!((options.cells_per_pass, options.within_class_temperature), (8, Some(0.6)));
         assert!(options.keep_observed);
         // the oracle's pixels are never changed, whatever the policy says
@@ -815,6 +839,7 @@ mod tests {
                 refiner: RefinerKind::Null,
                 model: Some("m.safetensors".into()),
                 no_refine: false,
+                bank: BankSpec::None,
             },
             ..RunSettings::default()
         };

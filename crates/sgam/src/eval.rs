@@ -82,6 +82,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                             refiner: kind,
                             model: a.model.clone(),
                             no_refine: false,
+                            bank: Default::default(),
                         },
                         ..Default::default()
                     };

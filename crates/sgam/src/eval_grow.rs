@@ -53,8 +53,8 @@ pub fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, r
         // was written besides the frames: a new field of the run is compared without a change here
         let comparable = |r: &sgam_pipeline::RunConfig| sgam_pipeline::RunConfig {
             refiner: match &r.refiner {
-                sgam_pipeline::RefinerSpec::Model { options, .. } => {
-                    sgam_pipeline::RefinerSpec::Model { model: None, options: *options }
+                sgam_pipeline::RefinerSpec::Model { options, bank, .. } => {
+                    sgam_pipeline::RefinerSpec::Model { model: None, options: *options, bank: bank.clone() }
                 }
                 other => other.clone(),
             },

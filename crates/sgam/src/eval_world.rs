@@ -133,6 +133,16 @@ impl WorldArgs {
             if s.regenerate_observed {
                 label.push_str("-regen");
             }
+            // the bank's bytes name it, like the weights
+            match &r.bank {
+                sgam_pipeline::BankSpec::None => {}
+                sgam_pipeline::BankSpec::Bundled => {
+                    label.push_str(&format!("-bank{:08x}", crc32fast::hash(sgam_pipeline::BUNDLED_BANK)))
+                }
+                sgam_pipeline::BankSpec::File(p) => {
+                    label.push_str(&format!("-bank{:08x}", crc32fast::hash(&std::fs::read(p).unwrap_or_default())))
+                }
+            }
         }
         let p = &self.invented;
         if kind != RefinerKind::Oracle {

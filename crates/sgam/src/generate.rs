@@ -157,7 +157,11 @@ pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
 /// call a refiner directly.
 pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>> {
     Ok(match run.refiner_spec() {
-        RefinerSpec::Model { model, options } => Some(sgam_pipeline::model_refiner(model.as_deref(), options)?),
+        RefinerSpec::Model { model, options, bank } => {
+            let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
+            r.set_bank(bank.load()?)?;
+            Some(r)
+        }
         RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,
     })
 }
@@ -174,6 +178,9 @@ fn next_run_dir() -> PathBuf {
 fn model_crc32(refiner: &RefinerSpec) -> Result<Option<u32>> {
     if let RefinerSpec::Model { model: Some(p), .. } = refiner {
         crate::guard::check_input_file("--model", p)?;
+    }
+    if let RefinerSpec::Model { bank: sgam_pipeline::BankSpec::File(p), .. } = refiner {
+        crate::guard::check_input_file("--bank", p)?;
     }
     Ok(refiner.model_crc32()?)
 }
@@ -209,7 +216,7 @@ pub fn run(args: GenerateArgs) -> Result<()> {
                 _ => "bundled".into(),
             };
             bail!(
-                "{}: the model ({model}) is not the file this run started with; resume with that file, or start a new run",
+                "{}: the model ({model}) or its code bank is not the file this run started with; resume with that file, or start a new run",
                 dir.display(),
             );
         }

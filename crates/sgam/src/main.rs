@@ -23,6 +23,7 @@ mod progress;
 mod serve;
 mod synth;
 mod train;
+mod train_bank;
 mod train_common;
 mod train_context;
 mod train_decoder;

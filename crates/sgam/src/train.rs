@@ -46,6 +46,10 @@ pub enum TrainCommand {
     /// Fine-tune the decoder on whole frames (the codes, encoder and codebook stay): a decoder
     /// trained on crops cannot tell how far the ground is at a frame's border.
     Decoder(crate::train_decoder::DecoderArgs),
+    /// Build a code bank (`sgam generate --bank FILE`): true frames of training scenes, encoded
+    /// by the model, that holes can be completed from.
+    #[command(after_help = "Example (the bundled bank):\n  sgam train bank --out models/bank.bin --frames 4096")]
+    Bank(crate::train_bank::BankArgs),
     /// Write a run's weights as a shippable model file (f16 by default, config embedded).
     #[command(
         after_help = "Example (the bundled model):\n  sgam train export runs/s2/model.safetensors models/compact.safetensors"
@@ -255,6 +259,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
         TrainCommand::Stage1(a) => (Stage::One, a),
         TrainCommand::Stage2(a) => (Stage::Two, a),
         TrainCommand::Export(a) => return export(&a),
+        TrainCommand::Bank(a) => return crate::train_bank::run(&a),
         TrainCommand::Sampler(a) => return crate::train_sampler::run(&a),
         TrainCommand::Context(a) => return crate::train_context::run(&a),
         TrainCommand::Decoder(a) => return crate::train_decoder::run(&a),

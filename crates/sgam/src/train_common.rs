@@ -99,7 +99,7 @@ mod tests {
             T::Sampler(a) => a.common,
             T::Context(a) => a.common,
             T::Decoder(a) => a.common,
-            T::Export(_) => unreachable!(),
+            T::Export(_) | T::Bank(_) => unreachable!(),
         }
     }
 

@@ -342,6 +342,21 @@ fn bad_options_are_refused_before_work_naming_the_option() {
         (generator(&["--trajectory", "file"]), "--trajectory-file"),
         (generator(&["--trajectory-file", s(&file)]), "--trajectory file"),
         (generator(&["--model", s(&file)]), "--model"),
+        (generator(&["--bank", "bundled"]), "--bank is used only by the learned refiner"),
+        (
+            ["generate", "--steps", "2", "--out", s(&out), "--seed-rgb", s(&png), "--seed-depth", s(&npy)]
+                .iter()
+                .chain(&["--intrinsics", "30,30,16,16", "--bank", "bundled"])
+                .map(|a| a.to_string())
+                .collect(),
+            "--bank bundled",
+        ),
+        (
+            ["generate", "--res", "32", "--steps", "2", "--out", s(&out), "--bank", s(&t.join("no-such.bin"))]
+                .map(String::from)
+                .to_vec(),
+            "--bank",
+        ),
         (generator(&["--seed-rgb", s(&png), "--seed-depth", s(&npy), "--intrinsics", "1e-30,30,16,16"]), "fx"),
         (generator(&["--seed-rgb", s(&png), "--seed-depth", s(&npy), "--intrinsics", "30,30,16,1e6"]), "cy"),
         // fuse
@@ -758,4 +773,24 @@ fn export_takes_a_decoder_only_from_a_model_with_the_same_codebook() {
     let refused = t.join("refused.safetensors");
     fails(&["train", "export", s(&a), s(&refused), "--decoder-from", s(&c)], &["stranger.safetensors", "codebook"]);
     assert!(!refused.exists());
+}
+
+#[test]
+fn a_damaged_or_foreign_code_bank_is_refused_naming_the_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path();
+    let good = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/bank.bin")).unwrap();
+    let damaged = t.join("damaged.bin");
+    let mut b = good.clone();
+    b[1000] ^= 1;
+    std::fs::write(&damaged, &b).unwrap();
+    let not_a_bank = t.join("not-a-bank.bin");
+    std::fs::write(&not_a_bank, b"SGAMTSDF and more").unwrap();
+    for (file, why) in [(&damaged, "checksum"), (&not_a_bank, "not a code bank")] {
+        let out = t.join(file.file_stem().unwrap());
+        fails(
+            &["generate", "--res", "32", "--steps", "2", "--no-video", "--out", s(&out), "--bank", s(file)],
+            &[s(file), why],
+        );
+    }
 }

@@ -34,25 +34,17 @@ fn the_bundled_weights_are_the_ones_the_bounds_were_measured_with() {
     );
 }
 
-#[test]
-fn a_short_world_from_the_bundled_model_holds_solid_objects_on_a_flat_ground() {
+/// The short world's figures: objects, median solidity, compact share, ground RMS (mm), the
+/// oracle's ground RMS (mm), p90 footprint (m2); and the whole JSON for messages.
+fn short_world(extra: &[&str]) -> (usize, f64, f64, f64, f64, f64, String) {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().to_str().unwrap();
     let steps = WORLD_STEPS.to_string();
     let seed = WORLD_SEED.to_string();
-    let o = common::sgam(&[
-        "eval",
-        "world",
-        "--first-seed",
-        &seed,
-        "--seeds",
-        "1",
-        "--steps",
-        &steps,
-        "--out",
-        out,
-        "--json",
-    ]);
+    let mut args =
+        vec!["eval", "world", "--first-seed", &seed, "--seeds", "1", "--steps", &steps, "--out", out, "--json"];
+    args.extend_from_slice(extra);
+    let o = common::sgam(&args);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let stdout = String::from_utf8_lossy(&o.stdout);
     let v: serde_json::Value = serde_json::from_str(stdout.lines().last().unwrap()).unwrap();
@@ -60,15 +52,58 @@ fn a_short_world_from_the_bundled_model_holds_solid_objects_on_a_flat_ground() {
     let new_area = g["new_area_m2"].as_f64().unwrap();
     let objects = (g["objects_per_100m2"].as_f64().unwrap() * new_area / 100.0).round() as usize;
     let shape = &g["object_shape"];
-    let ground = g["ground_rms_mm"].as_f64().unwrap();
-    let oracle_ground = v["oracle"]["ground_rms_mm"].as_f64().unwrap();
+    (
+        objects,
+        shape["median_solidity"].as_f64().unwrap(),
+        shape["compact_share"].as_f64().unwrap_or(0.0),
+        g["ground_rms_mm"].as_f64().unwrap(),
+        v["oracle"]["ground_rms_mm"].as_f64().unwrap(),
+        g["p90_object_area_m2"].as_f64().unwrap(),
+        g.to_string(),
+    )
+}
+
+#[test]
+fn a_short_world_from_the_bundled_model_holds_solid_objects_on_a_flat_ground() {
+    let (objects, solidity, _, ground, oracle_ground, p90, g) = short_world(&[]);
     assert!(objects >= MIN_OBJECTS, "{objects} objects (bound {MIN_OBJECTS}): {g}");
-    assert!(
-        shape["median_solidity"].as_f64().unwrap() >= MIN_MEDIAN_SOLIDITY,
-        "median solidity below {MIN_MEDIAN_SOLIDITY}: {g}"
-    );
+    assert!(solidity >= MIN_MEDIAN_SOLIDITY, "median solidity below {MIN_MEDIAN_SOLIDITY}: {g}");
     assert!(ground <= MAX_GROUND_RATIO * oracle_ground, "ground {ground} mm against the oracle's {oracle_ground}: {g}");
-    let p90 = g["p90_object_area_m2"].as_f64().unwrap();
+    assert!(p90 <= MAX_P90_AREA_M2, "p90 footprint {p90} m2 (bound {MAX_P90_AREA_M2}): {g}");
+}
+
+/// CRC-32 of `models/bank.bin`; the bounds below were measured with it and the pinned model.
+const BANK_CRC32: u32 = 0x2144_df1c;
+/// Bounds of the same world grown with the bundled code bank (`--bank bundled`), measured
+/// 2026-12-03 in a release build: 11 objects, median solidity 0.82, compact share 0.36 (the
+/// oracle's 0.47), ground 50.3 mm against the oracle's 31.1 (1.61x), p90 footprint 5.2 m2; set
+/// with a margin. Unlike the sampled world above, compact objects are required.
+const BANK_MIN_OBJECTS: usize = 6;
+const BANK_MIN_MEDIAN_SOLIDITY: f64 = 0.72;
+const BANK_MIN_COMPACT_SHARE: f64 = 0.15;
+const BANK_MAX_GROUND_RATIO: f64 = 2.2;
+
+#[test]
+fn the_bundled_bank_is_pinned_and_fits_the_bundled_model() {
+    let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/bank.bin")).unwrap();
+    assert_eq!(crc32fast::hash(&bytes), BANK_CRC32, "models/bank.bin changed: re-measure the bank world's bounds");
+    let bank = sgam_model::bank::CodeBank::from_bytes(&bytes).unwrap();
+    let options = sgam_model::RefinerOptions::default();
+    let mut refiner = sgam_pipeline::model_refiner(None, options).unwrap();
+    assert_eq!((bank.rows, bank.cols, bank.len()), (32, 32, 4096));
+    refiner.set_bank(Some(std::sync::Arc::new(bank))).expect("the bundled bank must fit the bundled model");
+}
+
+#[test]
+fn a_short_world_from_the_bundled_bank_holds_compact_objects_on_a_flat_ground() {
+    let (objects, solidity, compact, ground, oracle_ground, p90, g) = short_world(&["--bank", "bundled"]);
+    assert!(objects >= BANK_MIN_OBJECTS, "{objects} objects (bound {BANK_MIN_OBJECTS}): {g}");
+    assert!(solidity >= BANK_MIN_MEDIAN_SOLIDITY, "median solidity below {BANK_MIN_MEDIAN_SOLIDITY}: {g}");
+    assert!(compact >= BANK_MIN_COMPACT_SHARE, "compact share below {BANK_MIN_COMPACT_SHARE}: {g}");
+    assert!(
+        ground <= BANK_MAX_GROUND_RATIO * oracle_ground,
+        "ground {ground} mm against the oracle's {oracle_ground}: {g}"
+    );
     assert!(p90 <= MAX_P90_AREA_M2, "p90 footprint {p90} m2 (bound {MAX_P90_AREA_M2}): {g}");
 }
 

@@ -1,0 +1,133 @@
+//! The code bank a run may complete holes from ([`sgam_model::bank`]): which one
+//! ([`BankSpec`]), and how one is built from the synthetic world ([`build_bank`]).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use sgam_model::bank::CodeBank;
+use sgam_model::VqRefiner;
+use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
+
+use crate::{PipelineError, Result, HELD_OUT_SEED_BASE};
+
+/// Which code bank completes the model's holes.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BankSpec {
+    /// None: the model samples every hole's codes itself.
+    #[default]
+    None,
+    /// The bank shipped with the bundled model (`models/bank.bin`).
+    Bundled,
+    /// A bank file (`sgam train bank`).
+    File(PathBuf),
+}
+
+impl std::str::FromStr for BankSpec {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        Ok(match s {
+            "" => return Err("empty; use none, bundled or a bank file".into()),
+            "none" => BankSpec::None,
+            "bundled" => BankSpec::Bundled,
+            path => BankSpec::File(PathBuf::from(path)),
+        })
+    }
+}
+
+impl std::fmt::Display for BankSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            BankSpec::None => f.write_str("none"),
+            BankSpec::Bundled => f.write_str("bundled"),
+            BankSpec::File(p) => write!(f, "{}", p.display()),
+        }
+    }
+}
+
+impl BankSpec {
+    /// Loads the bank (`None` for [`BankSpec::None`]), naming the file in errors.
+    pub fn load(&self) -> Result<Option<Arc<CodeBank>>> {
+        let bank = match self {
+            BankSpec::None => return Ok(None),
+            BankSpec::Bundled => CodeBank::from_bytes(crate::refiners::BUNDLED_BANK)?,
+            BankSpec::File(p) => CodeBank::read(p)?,
+        };
+        Ok(Some(Arc::new(bank)))
+    }
+
+    /// CRC-32 of the bank's bytes (`None` without a bank): a resumed run refuses a bank that
+    /// changed since it started.
+    pub fn crc32(&self) -> Result<Option<u32>> {
+        Ok(match self {
+            BankSpec::None => None,
+            BankSpec::Bundled => Some(crc32fast::hash(crate::refiners::BUNDLED_BANK)),
+            BankSpec::File(p) => Some(crc32fast::hash(
+                &std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?,
+            )),
+        })
+    }
+}
+
+/// First scene seed of the bank's frames: training scenes, far from the ones evaluations and
+/// tuning use (11-14) and below the held-out seeds.
+pub const BANK_SCENE_BASE: u64 = 500_000;
+/// Frames rendered per scene.
+const FRAMES_PER_SCENE: usize = 8;
+
+/// Builds a bank of `frames` true frames at `res` x `res` px: training scenes from
+/// [`BANK_SCENE_BASE`] + 8 `seed`..., the dataset's camera (height and pitch) at random positions
+/// within 15 m of the scene's centre and random headings, each encoded by `refiner`'s model.
+/// `progress` is called with the number of frames done.
+pub fn build_bank(
+    refiner: &mut VqRefiner,
+    frames: usize,
+    res: u32,
+    seed: u64,
+    mut progress: impl FnMut(usize),
+) -> Result<CodeBank> {
+    let f = refiner.config().downsample_factor() as u32;
+    if frames == 0 || res == 0 || !res.is_multiple_of(f) {
+        return Err(PipelineError::Config(format!(
+            "a bank needs at least one frame and a resolution that is a multiple of {f} (got {frames} frames at {res} px)"
+        )));
+    }
+    let k = dataset_intrinsics(res);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x0BA4 ^ seed);
+    let mut codes = Vec::with_capacity(frames * (res / f * res / f) as usize);
+    let scenes = frames.div_ceil(FRAMES_PER_SCENE);
+    for s in 0..scenes {
+        let scene_seed = BANK_SCENE_BASE + seed.wrapping_mul(scenes as u64) + s as u64;
+        if scene_seed >= HELD_OUT_SEED_BASE {
+            return Err(PipelineError::Config(format!(
+                "--seed {seed} would draw the bank from held-out scenes (from {HELD_OUT_SEED_BASE})"
+            )));
+        }
+        let renderer = Renderer::new(&Scene::generate(scene_seed, &SceneConfig::default()));
+        for _ in 0..FRAMES_PER_SCENE.min(frames - s * FRAMES_PER_SCENE) {
+            let c = sgam_core::Vec3::new(
+                rng.random_range(-15.0..15.0),
+                rng.random_range(-15.0..15.0),
+                sgam_synth::CAMERA_HEIGHT_M,
+            );
+            let yaw = rng.random_range(0.0..std::f32::consts::TAU);
+            let camera = blender_camera(c, sgam_synth::CAMERA_PITCH_RAD, yaw, k);
+            let frame = renderer.render(&camera, &RenderConfig::default()).frame;
+            let grid = refiner.frame_codes(&frame, &k)?;
+            codes.extend(grid.iter().map(|&c| c as u16));
+            progress(codes.len() / grid.len().max(1));
+        }
+    }
+    let side = (res / f) as usize;
+    let codebook_crc32 = refiner.codebook_crc32()?;
+    Ok(CodeBank { rows: side, cols: side, n_embed: refiner.config().n_embed, codebook_crc32, codes })
+}
+
+/// Writes `bank` to `path` atomically.
+pub fn write_bank(path: &Path, bank: &CodeBank) -> Result<()> {
+    let bytes = bank.to_bytes();
+    sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?;
+    Ok(())
+}
