@@ -78,6 +78,12 @@ pub fn positive(option: &str, value: f32, max: f32) -> Result<()> {
 /// Camera path shapes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 pub enum TrajectoryKind {
+    /// The seed's own path (default): a CLEVR-Infinite seed (synthetic or template) takes the
+    /// zig-zag, 0.408 m a step; a Google Earth seed a straight line forward, 0.059 units a step
+    /// (the authors' preset); an RGB-D seed a straight line forward, each step 5 % of the
+    /// seed's median depth, so every step uncovers new ground whatever the seed's scale.
+    /// --step overrides the step.
+    Auto,
     /// The SGAM authors' anti-diagonal zig-zag over a grid (--grid x --grid, --step apart).
     Zigzag,
     /// Lawn-mower rows over a grid.
@@ -148,7 +154,7 @@ pub struct SeedSettings {
     #[arg(long)]
     pub seed_template: Option<PathBuf>,
     /// Seed from an SGAM Google Earth seed folder (planar depth; uses the Google Earth preset:
-    /// 1 cm voxels, 3 cm truncation, sources within 0.3, nearest 3, 0.02-unit steps).
+    /// 1 cm voxels, 3 cm truncation, sources within 0.3, nearest 3; a straight line forward, 0.059 units a step).
     #[arg(long)]
     pub seed_google_earth: Option<PathBuf>,
     /// Image resolution of synthetic seeds (square).
@@ -240,7 +246,7 @@ fn parse_intrinsics(s: &str) -> std::result::Result<[f32; 4], String> {
 #[derive(Debug, Clone, PartialEq, Args)]
 pub struct PathSettings {
     /// Trajectory shape.
-    #[arg(long, value_enum, default_value_t = TrajectoryKind::Zigzag)]
+    #[arg(long, value_enum, default_value_t = TrajectoryKind::Auto)]
     pub trajectory: TrajectoryKind,
     /// Pose file for --trajectory file: transforms.json (ours / NeRF), TUM (.txt with 8 columns)
     /// or KITTI (12 columns). Poses are used as given (world_from_camera).
@@ -261,7 +267,7 @@ pub struct PathSettings {
 
 impl Default for PathSettings {
     fn default() -> Self {
-        Self::kind(TrajectoryKind::Zigzag)
+        Self::kind(TrajectoryKind::Auto)
     }
 }
 
@@ -287,15 +293,30 @@ impl PathSettings {
         }
     }
 
-    /// The path of `steps` steps, with `preset_step_m` where `--step` is left out.
-    pub fn spec(&self, steps: usize, preset_step_m: f32) -> Result<TrajectorySpec> {
+    /// The path of `steps` steps from `seed`, with `preset_step_m` where `--step` is left out;
+    /// [`TrajectoryKind::Auto`] becomes the seed's own path (an RGB-D seed's depth is read for
+    /// its step).
+    pub fn spec(&self, steps: usize, seed: &SeedSpec, preset_step_m: f32) -> Result<TrajectorySpec> {
+        let (kind, preset_step_m) = match (self.trajectory, seed) {
+            (TrajectoryKind::Auto, SeedSpec::GoogleEarth { .. }) => (TrajectoryKind::Line, GOOGLE_EARTH_LINE_STEP),
+            (TrajectoryKind::Auto, SeedSpec::Rgbd { .. }) => {
+                let step = match self.step {
+                    Some(s) => s,
+                    None => rgbd_seed_step_m(seed)?,
+                };
+                (TrajectoryKind::Line, step)
+            }
+            (TrajectoryKind::Auto, _) => (TrajectoryKind::Zigzag, preset_step_m),
+            (kind, _) => (kind, preset_step_m),
+        };
         // the grid trajectories need a cell per pose
         let side = self.grid.max(((steps + 1) as f64).sqrt().ceil() as usize);
         let step_m = self.step.unwrap_or(preset_step_m);
         if !(step_m.is_finite() && step_m > 0.0) {
             config_error!("--step {step_m} must be a positive distance in metres");
         }
-        Ok(match self.trajectory {
+        Ok(match kind {
+            TrajectoryKind::Auto => unreachable!("resolved above"),
             TrajectoryKind::Zigzag => TrajectorySpec::Zigzag { side, step_m },
             TrajectoryKind::Boustrophedon => TrajectorySpec::Boustrophedon { side, step_m },
             TrajectoryKind::Line => TrajectorySpec::Line { step_m },
@@ -310,6 +331,25 @@ impl PathSettings {
             }
         })
     }
+}
+
+/// Step of a Google Earth seed's default straight line, in the seed's units: the SGAM
+/// authors' preset (100 poses, 0.059 apart).
+pub const GOOGLE_EARTH_LINE_STEP: f32 = 0.059;
+/// Step of an RGB-D seed's default straight line, as a share of the seed's median depth.
+pub const RGBD_STEP_OF_MEDIAN_DEPTH: f32 = 0.05;
+
+/// The default step of an RGB-D seed's line: [`RGBD_STEP_OF_MEDIAN_DEPTH`] of its median valid
+/// depth.
+fn rgbd_seed_step_m(seed: &SeedSpec) -> Result<f32> {
+    let frame = seed.load()?.frame;
+    let mut d: Vec<f32> = frame.depth_m.data.iter().copied().filter(|d| sgam_core::is_valid_depth(*d)).collect();
+    if d.is_empty() {
+        config_error!("the seed's depth holds no valid pixel, so no step can follow its scale (give --step)");
+    }
+    let mid = d.len() / 2;
+    let (_, median, _) = d.select_nth_unstable_by(mid, f32::total_cmp);
+    Ok(*median * RGBD_STEP_OF_MEDIAN_DEPTH)
 }
 
 /// Which refiner completes each step's guidance.
@@ -719,7 +759,7 @@ impl RunSettings {
                 self.refiner.bank
             );
         }
-        let trajectory = self.path.spec(self.steps, preset.step_m)?;
+        let trajectory = self.path.spec(self.steps, &seed, preset.step_m)?;
         let m = &self.map;
         // the oracle is the true world: its pixels are never changed
         let invents = self.refiner.effective() != RefinerKind::Oracle;
@@ -823,12 +863,43 @@ mod tests {
         ge.seed.seed_google_earth = Some("seed0".into());
         let c = ge.resolve().unwrap();
         assert_eq!((c.map.voxel_size_m, c.k_sources, c.source_radius_m), (0.01, 3, 0.3));
-        assert_eq!(c.trajectory, TrajectorySpec::Zigzag { side: 30, step_m: 0.02 });
+        // the authors' Google Earth path: a straight line, 0.059 units a step
+        assert_eq!(c.trajectory, TrajectorySpec::Line { step_m: GOOGLE_EARTH_LINE_STEP });
+        ge.path.trajectory = TrajectoryKind::Zigzag;
+        assert_eq!(ge.resolve().unwrap().trajectory, TrajectorySpec::Zigzag { side: 30, step_m: 0.02 });
+        ge.path.trajectory = TrajectoryKind::Auto;
         ge.refiner.no_refine = true;
         assert_eq!(ge.resolve().unwrap().refiner, RefinerSpec::Null { fill: false });
         // an option given by the user wins over the preset
         ge.map.voxel_size = Some(0.02);
         assert_eq!(ge.resolve().unwrap().map.voxel_size_m, 0.02);
+    }
+
+    #[test]
+    fn the_default_path_follows_the_seed() {
+        assert_eq!(
+            RunSettings::default().resolve().unwrap().trajectory,
+            TrajectorySpec::Zigzag { side: 30, step_m: 0.408 }
+        );
+        // an RGB-D seed: a line, each step 5 % of its median valid depth (zeros are not depth)
+        let dir = tempfile::tempdir().unwrap();
+        let (rgb, depth) = (dir.path().join("rgb.png"), dir.path().join("d.npy"));
+        sgam_io::write_rgb_png(&rgb, &sgam_core::Image::filled(32, 32, [0.5f32; 3])).unwrap();
+        let mut d = sgam_core::Image::filled(32, 32, 3.0f32);
+        for v in d.data.iter_mut().take(200) {
+            *v = 1.0;
+        }
+        for v in d.data.iter_mut().skip(900) {
+            *v = 0.0;
+        }
+        sgam_io::write_npy_f32(&depth, &d).unwrap();
+        let mut user = RunSettings::default();
+        (user.seed.seed_rgb, user.seed.seed_depth) = (Some(rgb), Some(depth));
+        user.seed.intrinsics = Some([30.0, 30.0, 16.0, 16.0]);
+        let TrajectorySpec::Line { step_m } = user.resolve().unwrap().trajectory else { panic!("not a line") };
+        assert!((step_m - 3.0 * RGBD_STEP_OF_MEDIAN_DEPTH).abs() < 1e-6, "{step_m}");
+        user.path.step = Some(0.25);
+        assert_eq!(user.resolve().unwrap().trajectory, TrajectorySpec::Line { step_m: 0.25 });
     }
 
     #[test]

@@ -200,7 +200,7 @@ pub fn name(kind: TrajectoryKind) -> String {
 pub fn trajectory_parser() -> impl TypedValueParser<Value = TrajectoryKind> {
     let names: Vec<_> = TrajectoryKind::value_variants()
         .iter()
-        .filter(|k| **k != TrajectoryKind::File)
+        .filter(|k| !matches!(**k, TrajectoryKind::File | TrajectoryKind::Auto))
         .filter_map(ValueEnum::to_possible_value)
         .collect();
     PossibleValuesParser::new(names).try_map(|s| TrajectoryKind::from_str(&s, true))
