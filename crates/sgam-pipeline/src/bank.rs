@@ -16,6 +16,9 @@ use crate::{PipelineError, Result, HELD_OUT_SEED_BASE};
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BankSpec {
+    /// The bundled bank for a CLEVR-Infinite seed grown by the bundled model, else none
+    /// ([`BankSpec::resolve`]; a run's resolved configuration never holds it).
+    Auto,
     /// None: the model samples every hole's codes itself.
     #[default]
     None,
@@ -30,6 +33,7 @@ impl std::str::FromStr for BankSpec {
     fn from_str(s: &str) -> std::result::Result<Self, String> {
         Ok(match s {
             "" => return Err("empty; use none, bundled or a bank file".into()),
+            "auto" => BankSpec::Auto,
             "none" => BankSpec::None,
             "bundled" => BankSpec::Bundled,
             path => BankSpec::File(PathBuf::from(path)),
@@ -40,6 +44,7 @@ impl std::str::FromStr for BankSpec {
 impl std::fmt::Display for BankSpec {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
+            BankSpec::Auto => f.write_str("auto"),
             BankSpec::None => f.write_str("none"),
             BankSpec::Bundled => f.write_str("bundled"),
             BankSpec::File(p) => write!(f, "{}", p.display()),
@@ -48,10 +53,27 @@ impl std::fmt::Display for BankSpec {
 }
 
 impl BankSpec {
-    /// Loads the bank (`None` for [`BankSpec::None`]), naming the file in errors.
+    /// [`BankSpec::Auto`] made concrete: the bundled bank when the seed is CLEVR-Infinite
+    /// (`clevr_seed`) and the model the bundled one (`bundled_model`), else none; other
+    /// choices as they are.
+    pub fn resolve(&self, clevr_seed: bool, bundled_model: bool) -> BankSpec {
+        match self {
+            BankSpec::Auto if clevr_seed && bundled_model => BankSpec::Bundled,
+            BankSpec::Auto => BankSpec::None,
+            other => other.clone(),
+        }
+    }
+
+    /// Whether the user named a bank (bundled or a file).
+    pub fn is_explicit(&self) -> bool {
+        matches!(self, BankSpec::Bundled | BankSpec::File(_))
+    }
+
+    /// Loads the bank (`None` for [`BankSpec::None`], and for an unresolved
+    /// [`BankSpec::Auto`]), naming the file in errors.
     pub fn load(&self) -> Result<Option<Arc<CodeBank>>> {
         let bank = match self {
-            BankSpec::None => return Ok(None),
+            BankSpec::None | BankSpec::Auto => return Ok(None),
             BankSpec::Bundled => CodeBank::from_bytes(crate::refiners::BUNDLED_BANK)?,
             BankSpec::File(p) => CodeBank::read(p)?,
         };
@@ -62,7 +84,7 @@ impl BankSpec {
     /// changed since it started.
     pub fn crc32(&self) -> Result<Option<u32>> {
         Ok(match self {
-            BankSpec::None => None,
+            BankSpec::None | BankSpec::Auto => None,
             BankSpec::Bundled => Some(crc32fast::hash(crate::refiners::BUNDLED_BANK)),
             BankSpec::File(p) => Some(crc32fast::hash(
                 &std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?,

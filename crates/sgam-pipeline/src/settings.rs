@@ -365,11 +365,12 @@ pub struct RefinerSettings {
     #[arg(long)]
     pub no_refine: bool,
     /// Complete each hole from a bank of true frames' codes instead of sampling it cell by cell
-    /// (none, bundled, or a file from `sgam train bank`): the hole takes the codes of the real
-    /// frame whose cells around it look most like the visible ones, so it holds whole objects;
-    /// thin bands along the frame's border wait until they are 3 cells wide. The bank must
+    /// (auto, none, bundled, or a file from `sgam train bank`): the hole takes the codes of the
+    /// real frame whose cells around it look most like the visible ones, so it holds whole
+    /// objects; thin bands along the frame's border wait until they are 3 cells wide. auto:
+    /// the bundled bank for a CLEVR-Infinite seed grown by the bundled model. The bank must
     /// come from the same model (checked). CLEVR-Infinite seeds only: its frames are synthetic.
-    #[arg(long, value_name = "none|bundled|FILE", default_value_t = BankSpec::None)]
+    #[arg(long, value_name = "none|bundled|FILE", default_value_t = BankSpec::Auto)]
     pub bank: BankSpec,
 }
 
@@ -382,7 +383,7 @@ impl Default for RefinerSettings {
 impl RefinerSettings {
     /// The refiner `kind` (the bundled model for the learned one).
     pub fn kind(kind: RefinerKind) -> Self {
-        Self { refiner: kind, model: None, no_refine: false, bank: BankSpec::None }
+        Self { refiner: kind, model: None, no_refine: false, bank: BankSpec::Auto }
     }
 
     /// The refiner that runs: `--no-refine` makes it the stand-in that fills nothing.
@@ -406,7 +407,7 @@ impl RefinerSettings {
         } else {
             format!("--refiner {:?}", self.refiner).to_lowercase()
         };
-        for (option, given) in [("--model", self.model.is_some()), ("--bank", self.bank != BankSpec::None)] {
+        for (option, given) in [("--model", self.model.is_some()), ("--bank", self.bank.is_explicit())] {
             if self.is_stand_in() && given {
                 config_error!(
                     "{option} is used only by the learned refiner; this run uses a stand-in ({stand_in}) and would ignore it"
@@ -752,7 +753,8 @@ impl RunSettings {
         let seed = self.seed.spec()?;
         let preset = seed.preset();
         let uses_model = matches!(self.refiner.effective(), RefinerKind::Auto | RefinerKind::Model);
-        if uses_model && self.refiner.bank != BankSpec::None && !matches!(seed, crate::SeedSpec::Synthetic { .. }) {
+        let clevr_seed = matches!(seed, crate::SeedSpec::Synthetic { .. } | crate::SeedSpec::ClevrTemplate { .. });
+        if uses_model && self.refiner.bank.is_explicit() && !clevr_seed {
             config_error!(
                 "--bank {}: a code bank holds frames of the synthetic CLEVR-Infinite world, and this seed is not one \
                  (leave out --bank)",
@@ -769,7 +771,13 @@ impl RunSettings {
             seed,
             trajectory,
             steps: self.steps,
-            refiner: self.refiner_spec(),
+            refiner: match self.refiner_spec() {
+                RefinerSpec::Model { model, options, bank } => {
+                    let bank = bank.resolve(clevr_seed, model.is_none());
+                    RefinerSpec::Model { model, options, bank }
+                }
+                other => other,
+            },
             map: sgam_map::TsdfConfig {
                 voxel_size_m: m.voxel_size.unwrap_or(preset.voxel_size_m),
                 trunc_voxels: m.trunc_voxels.unwrap_or(preset.trunc_voxels),
@@ -839,7 +847,7 @@ mod tests {
         assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 5.0, 5));
         assert_eq!(c.map, crate::clevr_generator_config(0).tsdf, "generation and training share the map");
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (Some(1.0), true, true));
-        let RefinerSpec::Model { model: None, options, bank: BankSpec::None } = c.refiner else {
+        let RefinerSpec::Model { model: None, options, bank: BankSpec::Bundled } = c.refiner else {
             panic!("{:?}", c.refiner)
         };
         assert_eq!((options.cells_per_pass, options.within_class_temperature), (8, Some(0.6)));

@@ -82,7 +82,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                             refiner: kind,
                             model: a.model.clone(),
                             no_refine: false,
-                            bank: Default::default(),
+                            bank: sgam_pipeline::BankSpec::Auto,
                         },
                         ..Default::default()
                     };

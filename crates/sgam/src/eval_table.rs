@@ -203,7 +203,7 @@ fn row_settings(a: &TableArgs, row: &Row) -> RunSettings {
             refiner: row.refiner,
             model: if row.refiner == RefinerKind::Auto && !row.no_refine { a.model.clone() } else { None },
             no_refine: row.no_refine,
-            bank: Default::default(),
+            bank: sgam_pipeline::BankSpec::Auto,
         },
         ..RunSettings::default()
     };

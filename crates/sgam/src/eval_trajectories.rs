@@ -233,7 +233,7 @@ pub fn evaluate(
     check(kinds)?;
     let mut results = Vec::new();
     for &kind in kinds {
-        if kind == base.path.trajectory {
+        if kind == base.trajectory() {
             results.push((kind, base_world.clone()));
             continue;
         }

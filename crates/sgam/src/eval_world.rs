@@ -29,7 +29,7 @@ use sgam_metrics::world::{Exclusion, PooledStats, WorldStats, WorldStatsConfig};
 
 use sgam_pipeline::settings::{
     FreeSpace, InventedPixelSettings, MapSettings, PathSettings, RefinerKind, RefinerSettings, SamplingSettings,
-    DEFAULT_CELLS_PER_PASS, DEFAULT_FLYING_PIXELS, DEFAULT_TOP_K,
+    TrajectoryKind, DEFAULT_CELLS_PER_PASS, DEFAULT_FLYING_PIXELS, DEFAULT_TOP_K,
 };
 use sgam_pipeline::HELD_OUT_SEED_BASE;
 
@@ -90,6 +90,15 @@ pub struct WorldArgs {
 }
 
 impl WorldArgs {
+    /// The trajectory the worlds follow: `auto` is the zig-zag for the synthetic seeds
+    /// evaluated here.
+    pub fn trajectory(&self) -> TrajectoryKind {
+        match self.path.trajectory {
+            TrajectoryKind::Auto => TrajectoryKind::Zigzag,
+            kind => kind,
+        }
+    }
+
     /// The folder name of this refiner's worlds: its weights (CRC-32) and every option that
     /// changes them, so worlds grown otherwise are never reused.
     pub fn label(&self) -> String {
@@ -134,8 +143,8 @@ impl WorldArgs {
                 label.push_str("-regen");
             }
             // the bank's bytes name it, like the weights
-            match &r.bank {
-                sgam_pipeline::BankSpec::None => {}
+            match &r.bank.resolve(true, r.model.is_none()) {
+                sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto => {}
                 sgam_pipeline::BankSpec::Bundled => {
                     label.push_str(&format!("-bank{:08x}", crc32fast::hash(sgam_pipeline::BUNDLED_BANK)))
                 }
@@ -351,7 +360,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     Ok(json!({
         "refiner": label, "seeds": seeds, "steps": steps,
-        "trajectory": format!("{:?}", args.path.trajectory).to_lowercase(),
+        "trajectory": format!("{:?}", args.trajectory()).to_lowercase(),
         "temperature": args.sampling.temperature,
         "ground_snap_m": args.invented.ground_snap,
         "flying_pixels": args.invented.flying_pixels,
