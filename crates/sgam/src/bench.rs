@@ -54,6 +54,9 @@ pub struct BenchArgs {
     /// Model file for `refine` and `step` (default: the bundled model).
     #[arg(long, value_name = "FILE")]
     pub model: Option<std::path::PathBuf>,
+    /// Code bank for `refine` and `step`, as `sgam generate --bank` (auto, none, bundled, FILE).
+    #[arg(long, value_name = "none|bundled|FILE", default_value_t = sgam_pipeline::BankSpec::Auto)]
+    pub bank: sgam_pipeline::BankSpec,
 }
 
 /// Renders `n` frames along the zig-zag from the dataset's first camera.
@@ -84,12 +87,13 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
 
 /// The bundled compact model with `sgam generate`'s default sampling (the refiner `sgam
 /// generate` builds with no options), for timing.
-fn compact_refiner(model: Option<&std::path::Path>) -> Result<sgam_model::VqRefiner> {
+fn compact_refiner(model: Option<&std::path::Path>, bank: &sgam_pipeline::BankSpec) -> Result<sgam_model::VqRefiner> {
     if let Some(p) = model {
         crate::guard::check_input_file("--model", p)?;
     }
     let mut run = sgam_pipeline::RunSettings::default();
     run.refiner.model = model.map(|p| p.to_path_buf());
+    run.refiner.bank = bank.clone();
     crate::generate::model_refiner(&run)?.ok_or_else(|| anyhow::anyhow!("the default refiner is not the model"))
 }
 
@@ -110,7 +114,7 @@ fn print_line(args: &BenchArgs, subject: &str, ms: &[f64], extra: serde_json::Va
 }
 
 fn bench_refine(args: &BenchArgs) -> Result<()> {
-    let mut refiner = compact_refiner(args.model.as_deref())?;
+    let mut refiner = compact_refiner(args.model.as_deref(), &args.bank)?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let (cam, frame) = &seq[0];
     let n = frame.depth_m.len();
@@ -182,7 +186,7 @@ fn gemm_gflops(n: usize, reps: usize) -> f64 {
 
 fn bench_step(args: &BenchArgs) -> Result<()> {
     use sgam_pipeline::WorldGenerator;
-    let refiner = compact_refiner(args.model.as_deref())?;
+    let refiner = compact_refiner(args.model.as_deref(), &args.bank)?;
     let (_, seq) = synthetic_sequence(args.res, 1);
     let dir = tempfile::tempdir()?;
     // the loop exactly as `sgam generate` resolves it by default (map, sources, ground prior,

@@ -153,13 +153,17 @@ pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
     Ok(())
 }
 
-/// The learned refiner `run` names (`None` for the stand-ins), for the evaluation commands that
-/// call a refiner directly.
+/// The learned refiner `run` names (`None` for the stand-ins), with the code bank it resolves
+/// to, for the evaluation and benchmark commands that call a refiner directly.
 pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>> {
     Ok(match run.refiner_spec() {
         RefinerSpec::Model { model, options, bank } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
-            r.set_bank(bank.load()?)?;
+            let clevr = matches!(
+                run.seed.spec()?,
+                sgam_pipeline::SeedSpec::Synthetic { .. } | sgam_pipeline::SeedSpec::ClevrTemplate { .. }
+            );
+            r.set_bank(bank.resolve(clevr, model.is_none()).load()?)?;
             Some(r)
         }
         RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,
