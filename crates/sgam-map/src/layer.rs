@@ -126,6 +126,12 @@ impl BlockLayer {
         (disjoint_mut(&mut self.blocks, ids), &self.keys)
     }
 
+    /// The keys and blocks by id, consuming the layer (the map rebuilds itself from them when
+    /// it lets blocks go).
+    pub(crate) fn into_parts(self) -> (Vec<IVec3>, Vec<Block>) {
+        (self.keys, self.blocks)
+    }
+
     /// Allocates block `key` (empty) if needed; returns its id and whether it is new.
     pub(crate) fn allocate(&mut self, key: IVec3) -> (u32, bool) {
         if let Some(&i) = self.index.get(&key) {

@@ -33,6 +33,7 @@ mod mc_table;
 mod mesh;
 mod persist;
 mod render;
+mod stream;
 mod warp;
 
 pub use block::{Block, Voxel, BLOCK_SIZE, BLOCK_VOXELS};
@@ -40,4 +41,5 @@ pub use config::{TsdfConfig, MAX_DEPTH_M, MAX_TRUNC_VOXELS, MAX_VOXEL_M, MIN_VOX
 pub use error::MapError;
 pub use map::{IntegrateStats, TsdfMap};
 pub use render::Rendered;
+pub use stream::{super_block_of, EvictedBlock};
 pub use warp::{warp_colour, SourceSelection, SourceView, WarpConfig, Warped};

@@ -46,6 +46,12 @@ pub struct TsdfMap {
     /// Per block, per voxel row (`y + 8 z`): the same summary over the row, so that an
     /// integration which leaves a row alone need not read it to refresh `sign_flags`.
     pub(crate) row_flags: Vec<[u8; ROWS]>,
+    /// Per block: its place in allocation order, kept when the block is evicted and restored
+    /// ([`crate::stream`]), so the rasterizer's tie-breaks (earlier first) do not depend on
+    /// where a block's id ended up.
+    pub(crate) order: Vec<u64>,
+    /// The next allocation's `order`.
+    pub(crate) next_order: u64,
 }
 
 impl TsdfMap {
@@ -60,6 +66,8 @@ impl TsdfMap {
             is_dirty: Vec::new(),
             sign_flags: Vec::new(),
             row_flags: Vec::new(),
+            order: Vec::new(),
+            next_order: 0,
         }
     }
 
@@ -83,6 +91,7 @@ impl TsdfMap {
             + std::mem::size_of::<bool>()
             + std::mem::size_of::<[u32; 8]>() * 2
             + std::mem::size_of::<[u8; ROWS]>()
+            + std::mem::size_of::<u64>()
             + 1;
         let meshes: usize = self.meshes.iter().map(BlockMesh::heap_bytes).sum();
         self.layer.capacity() * per_block + meshes + self.layer.super_block_count() * 64
@@ -116,6 +125,8 @@ impl TsdfMap {
             self.is_dirty.push(false);
             self.sign_flags.push(0);
             self.row_flags.push([0; ROWS]);
+            self.order.push(self.next_order);
+            self.next_order += 1;
         }
         (id, new)
     }

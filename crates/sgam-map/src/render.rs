@@ -248,7 +248,7 @@ impl TsdfMap {
     ///
     /// Blocks are split into contiguous chunks, each rasterized into its own z-buffer; merging
     /// them with [`nearest_buffer`] (nearest hit, on exact ties the earlier chunk) gives the
-    /// same result as one sequential pass in id order, whatever the number of threads.
+    /// same result as one sequential pass in allocation order, whatever the number of threads.
     fn z_buffers<const SHADE: bool>(&self, camera: &Camera, near_m: f32, far_m: f32) -> Option<(Vec<ZBuffer>, usize)> {
         let k = camera.intrinsics;
         let (w, h) = (k.width as usize, k.height as usize);
@@ -256,11 +256,14 @@ impl TsdfMap {
             return None;
         }
         let (near, far) = (near_m.max(1e-4), far_m);
-        let ids: Vec<u32> = self
+        let mut ids: Vec<u32> = self
             .blocks_in_frustum(camera, near, far)
             .into_iter()
             .filter(|&i| !self.meshes[i as usize].is_empty())
             .collect();
+        // allocation order (= id order unless blocks were evicted and restored): exact depth
+        // ties go to the same block either way
+        ids.sort_unstable_by_key(|&i| self.order[i as usize]);
         let camera_from_world = camera.world_from_camera.inverse();
         // Contiguous chunks of about equal work (triangles + vertices), one per thread.
         let cost = |id: u32| {
