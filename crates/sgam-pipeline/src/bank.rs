@@ -53,12 +53,12 @@ impl std::fmt::Display for BankSpec {
 }
 
 impl BankSpec {
-    /// [`BankSpec::Auto`] made concrete: the bundled bank when the seed is CLEVR-Infinite
-    /// (`clevr_seed`) and the model the bundled one (`bundled_model`), else none; other
-    /// choices as they are.
-    pub fn resolve(&self, clevr_seed: bool, bundled_model: bool) -> BankSpec {
+    /// [`BankSpec::Auto`] made concrete: the bundled bank when the seed's frames are the
+    /// bundled bank's kind (`fits`: synthetic CLEVR-Infinite at 256 px) and the model the
+    /// bundled one (`bundled_model`), else none; other choices as they are.
+    pub fn resolve(&self, fits: bool, bundled_model: bool) -> BankSpec {
         match self {
-            BankSpec::Auto if clevr_seed && bundled_model => BankSpec::Bundled,
+            BankSpec::Auto if fits && bundled_model => BankSpec::Bundled,
             BankSpec::Auto => BankSpec::None,
             other => other.clone(),
         }

@@ -101,7 +101,20 @@ pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
     Ok(match spec {
         RefinerSpec::Model { model, options, bank } => {
             let mut refiner = model_refiner(model.as_deref(), *options)?;
-            refiner.set_bank(bank.load()?).map_err(|e| match bank {
+            let loaded = bank.load()?;
+            if let Some(b) = &loaded {
+                let f = refiner.config().downsample_factor();
+                let (w, h) = (seed.frame.width() as usize, seed.frame.height() as usize);
+                if (b.cols * f, b.rows * f) != (w, h) {
+                    config_error!(
+                        "--bank {bank}: the bank holds {}x{} px frames and this run's are {w}x{h} (leave out --bank, or build a \
+                         bank at this size with `sgam train bank --res`)",
+                        b.cols * f,
+                        b.rows * f
+                    );
+                }
+            }
+            refiner.set_bank(loaded).map_err(|e| match bank {
                 BankSpec::File(p) => PipelineError::Model(e.in_file(p)),
                 _ => PipelineError::Model(e),
             })?;

@@ -762,6 +762,7 @@ impl RunSettings {
             );
         }
         let trajectory = self.path.spec(self.steps, &seed, preset.step_m)?;
+        let seed_for_bank = seed.clone();
         let m = &self.map;
         // the oracle is the true world: its pixels are never changed
         let invents = self.refiner.effective() != RefinerKind::Oracle;
@@ -773,7 +774,9 @@ impl RunSettings {
             steps: self.steps,
             refiner: match self.refiner_spec() {
                 RefinerSpec::Model { model, options, bank } => {
-                    let bank = bank.resolve(clevr_seed, model.is_none());
+                    // the bundled bank holds 256 px frames of the dataset's camera
+                    let bank_fits = matches!(seed_for_bank, crate::SeedSpec::Synthetic { res: 256, .. });
+                    let bank = bank.resolve(bank_fits, model.is_none());
                     RefinerSpec::Model { model, options, bank }
                 }
                 other => other,
@@ -881,6 +884,23 @@ mod tests {
         // an option given by the user wins over the preset
         ge.map.voxel_size = Some(0.02);
         assert_eq!(ge.resolve().unwrap().map.voxel_size_m, 0.02);
+    }
+
+    #[test]
+    fn the_bank_is_on_by_default_only_where_the_bundled_one_fits() {
+        let bank = |s: &RunSettings| match s.resolve().unwrap().refiner {
+            RefinerSpec::Model { bank, .. } => bank,
+            other => panic!("{other:?}"),
+        };
+        let mut s = RunSettings::default();
+        assert_eq!(bank(&s), BankSpec::Bundled);
+        s.seed.res = 128;
+        assert_eq!(bank(&s), BankSpec::None, "the bundled bank holds 256 px frames");
+        s.seed.res = 256;
+        s.refiner.model = Some("other.safetensors".into());
+        assert_eq!(bank(&s), BankSpec::None, "another model may have another codebook");
+        s.refiner.bank = BankSpec::Bundled;
+        assert_eq!(bank(&s), BankSpec::Bundled, "named, it is used (and checked when loaded)");
     }
 
     #[test]

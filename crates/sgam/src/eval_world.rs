@@ -143,6 +143,7 @@ impl WorldArgs {
                 label.push_str("-regen");
             }
             // the bank's bytes name it, like the weights
+            // (its worlds are 256 px synthetic ones: the bundled bank fits)
             match &r.bank.resolve(true, r.model.is_none()) {
                 sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto => {}
                 sgam_pipeline::BankSpec::Bundled => {

@@ -159,11 +159,8 @@ pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>>
     Ok(match run.refiner_spec() {
         RefinerSpec::Model { model, options, bank } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
-            let clevr = matches!(
-                run.seed.spec()?,
-                sgam_pipeline::SeedSpec::Synthetic { .. } | sgam_pipeline::SeedSpec::ClevrTemplate { .. }
-            );
-            r.set_bank(bank.resolve(clevr, model.is_none()).load()?)?;
+            let fits = matches!(run.seed.spec()?, sgam_pipeline::SeedSpec::Synthetic { res: 256, .. });
+            r.set_bank(bank.resolve(fits, model.is_none()).load()?)?;
             Some(r)
         }
         RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,

@@ -786,6 +786,12 @@ fn a_damaged_or_foreign_code_bank_is_refused_naming_the_file() {
     std::fs::write(&damaged, &b).unwrap();
     let not_a_bank = t.join("not-a-bank.bin");
     std::fs::write(&not_a_bank, b"SGAMTSDF and more").unwrap();
+    // the bundled bank holds 256 px frames
+    let small = t.join("small");
+    fails(
+        &["generate", "--res", "128", "--steps", "2", "--no-video", "--out", s(&small), "--bank", "bundled"],
+        &["--bank bundled", "256x256", "128x128"],
+    );
     for (file, why) in [(&damaged, "checksum"), (&not_a_bank, "not a code bank")] {
         let out = t.join(file.file_stem().unwrap());
         fails(
