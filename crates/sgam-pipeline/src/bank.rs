@@ -80,17 +80,24 @@ impl BankSpec {
         Ok(Some(Arc::new(bank)))
     }
 
-    /// CRC-32 of the bank's bytes (`None` without a bank): a resumed run refuses a bank that
-    /// changed since it started.
+    /// The bank's [`bank_id`] (`None` without a bank): a resumed run refuses a bank that changed
+    /// since it started.
     pub fn crc32(&self) -> Result<Option<u32>> {
         Ok(match self {
             BankSpec::None | BankSpec::Auto => None,
-            BankSpec::Bundled => Some(crc32fast::hash(crate::refiners::BUNDLED_BANK)),
-            BankSpec::File(p) => Some(crc32fast::hash(
-                &std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?,
-            )),
+            BankSpec::Bundled => Some(bank_id(crate::refiners::BUNDLED_BANK)),
+            BankSpec::File(p) => {
+                Some(bank_id(&std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?))
+            }
         })
     }
+}
+
+/// A bank file's identity: the CRC-32 of its content, i.e. without its own trailing CRC. (The
+/// CRC-32 of a whole file that ends with its own CRC is the same constant, 0x2144df1c, for every
+/// such file, so it cannot tell two banks apart.)
+pub fn bank_id(bytes: &[u8]) -> u32 {
+    crc32fast::hash(&bytes[..bytes.len().saturating_sub(4)])
 }
 
 /// First scene seed of the bank's frames: training scenes, far from the ones evaluations and
@@ -152,4 +159,19 @@ pub fn write_bank(path: &Path, bank: &CodeBank) -> Result<()> {
     let bytes = bank.to_bytes();
     sgam_io::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn two_banks_have_different_ids_though_their_whole_file_crcs_agree() {
+        let bank = |c: u16| CodeBank { rows: 1, cols: 2, n_embed: 8, codebook_crc32: 1, codes: vec![c, 1] };
+        let (a, b) = (bank(2).to_bytes(), bank(3).to_bytes());
+        // a file that ends with its own CRC-32 always has the same whole-file CRC-32
+        assert_eq!(crc32fast::hash(&a), crc32fast::hash(&b));
+        assert_ne!(bank_id(&a), bank_id(&b));
+        assert_eq!(bank_id(&a), u32::from_le_bytes(a[a.len() - 4..].try_into().unwrap()));
+    }
 }

@@ -147,11 +147,12 @@ impl WorldArgs {
             match &r.bank.resolve(true, r.model.is_none()) {
                 sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto => {}
                 sgam_pipeline::BankSpec::Bundled => {
-                    label.push_str(&format!("-bank{:08x}", crc32fast::hash(sgam_pipeline::BUNDLED_BANK)))
+                    label.push_str(&format!("-bank{:08x}", sgam_pipeline::bank::bank_id(sgam_pipeline::BUNDLED_BANK)))
                 }
-                sgam_pipeline::BankSpec::File(p) => {
-                    label.push_str(&format!("-bank{:08x}", crc32fast::hash(&std::fs::read(p).unwrap_or_default())))
-                }
+                sgam_pipeline::BankSpec::File(p) => label.push_str(&format!(
+                    "-bank{:08x}",
+                    sgam_pipeline::bank::bank_id(&std::fs::read(p).unwrap_or_default())
+                )),
             }
         }
         let p = &self.invented;
