@@ -34,11 +34,6 @@ impl EvictedBlock {
     pub fn block(&self) -> &Block {
         &self.block
     }
-
-    /// Heap bytes of the block's voxels and mesh.
-    pub fn heap_bytes(&self) -> usize {
-        std::mem::size_of::<Block>() + crate::block::BLOCK_VOXELS * 20 + self.mesh.heap_bytes()
-    }
 }
 
 /// The super-block holding block `key`.

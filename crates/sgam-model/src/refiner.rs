@@ -436,18 +436,7 @@ impl VqRefiner {
             ));
         }
         let cells = missing_cells(missing, w, h, f, self.options.missing_cell_threshold);
-        let x = pack_input(&[frame], &[Some(missing)], &[*intrinsics], &self.config, &self.device)?;
-        let k = self.config.n_embed;
-        let dist = match self.model.code_logits(x.clone()) {
-            Some(logits) => to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]).neg())?,
-            None => {
-                let z = self.model.encode(x);
-                let d = self.config.embed_dim;
-                let rows = z.permute([0, 2, 3, 1]).reshape([ch * cw, d]);
-                to_host(squared_distances(rows, self.model.quantize.embedding.weight.val()))?
-            }
-        };
-        let mut codes = select_codes(&dist, ch * cw, k, None, Sampling::Argmin, &mut self.rng);
+        let mut codes = self.most_likely_codes(frame, missing, intrinsics, [ch, cw])?;
         for (i, m) in cells.iter().enumerate() {
             if *m {
                 codes[i] = hole_codes[i];
@@ -650,76 +639,64 @@ impl VqRefiner {
     }
 
     /// Per code, how it looks: mean colour (sRGB, `[0, 1]`) and mean normalised disparity
-    /// (`[0, 1]`, near = 1) of the centre of its decoded patch (each code decoded as a uniform
-    /// 4x4-cell grid, computed once, 16 decoder calls). The bank matches holes with it.
+    /// (`[0, 1]`, near = 1) of the centre of its decoded patch ([`Self::code_patch_means`],
+    /// computed once). The bank matches holes with it.
     pub fn code_looks(&mut self) -> Result<&[[f32; 4]], ModelError> {
         if self.looks.is_none() {
-            let k = self.config.n_embed;
-            let f = self.config.downsample_factor();
-            let (g, batch) = (4usize, 64usize);
             let depth = self.config.depth;
-            let mut looks = Vec::with_capacity(k);
-            for start in (0..k).step_by(batch) {
-                let codes: Vec<u32> = (start..(start + batch).min(k)).map(|c| c as u32).collect();
-                let b = codes.len();
-                let idx: Vec<u32> = codes.iter().flat_map(|&c| std::iter::repeat_n(c, g * g)).collect();
-                let rows = self.model.quantize.lookup(&idx, &self.device);
-                let [_, d] = rows.dims();
-                let z_q = rows.reshape([b, g, g, d]).permute([0, 3, 1, 2]);
-                for frame in unpack(self.model.decode(z_q), &depth)? {
-                    let w = frame.width() as usize;
-                    let mut sum = [0.0f32; 4];
-                    let mut n = 0.0f32;
-                    for y in f..(g - 1) * f {
-                        for x in f..(g - 1) * f {
-                            let c = frame.colour.data[y * w + x];
-                            let s = normalised_disparity(frame.depth_m.data[y * w + x], &depth);
-                            for (acc, v) in sum.iter_mut().zip([c[0], c[1], c[2], s]) {
-                                *acc += v;
-                            }
-                            n += 1.0;
-                        }
-                    }
-                    looks.push(sum.map(|v| v / n.max(1.0)));
-                }
-            }
-            self.looks = Some(looks);
+            self.looks = Some(self.code_patch_means(|frame, i| {
+                let c = frame.colour.data[i];
+                [c[0], c[1], c[2], normalised_disparity(frame.depth_m.data[i], &depth)]
+            })?);
         }
         Ok(self.looks.as_deref().unwrap_or(&[]))
     }
 
     /// Which codes are plain (grey: CLEVR's ground) rather than coloured, for two-level
-    /// sampling: each code is decoded alone as a uniform 4x4-cell patch and counted plain when
-    /// the mean HSV saturation of its centre 2x2 cells is below [`PLAIN_CODE_SATURATION`].
-    /// Computed once per refiner (64 codes per decoder call).
+    /// sampling: a code is plain when the mean HSV saturation of the centre of its decoded patch
+    /// ([`Self::code_patch_means`]) is below [`PLAIN_CODE_SATURATION`]. Computed once per
+    /// refiner.
     pub fn plain_codes(&mut self) -> Result<&[bool], ModelError> {
         if self.plain_codes.is_none() {
-            let k = self.config.n_embed;
-            let f = self.config.downsample_factor();
-            let (g, batch) = (4usize, 64usize);
-            let mut plain = Vec::with_capacity(k);
-            for start in (0..k).step_by(batch) {
-                let codes: Vec<u32> = (start..(start + batch).min(k)).map(|c| c as u32).collect();
-                let b = codes.len();
-                let idx: Vec<u32> = codes.iter().flat_map(|&c| std::iter::repeat_n(c, g * g)).collect();
-                let rows = self.model.quantize.lookup(&idx, &self.device);
-                let [_, d] = rows.dims();
-                let z_q = rows.reshape([b, g, g, d]).permute([0, 3, 1, 2]);
-                for frame in unpack(self.model.decode(z_q), &self.config.depth)? {
-                    let w = frame.width() as usize;
-                    let (mut sum, mut n) = (0.0f32, 0.0f32);
-                    for y in f..(g - 1) * f {
-                        for x in f..(g - 1) * f {
-                            sum += saturation(frame.colour.data[y * w + x]);
-                            n += 1.0;
-                        }
-                    }
-                    plain.push(sum / n.max(1.0) < PLAIN_CODE_SATURATION);
-                }
-            }
-            self.plain_codes = Some(plain);
+            let means = self.code_patch_means(|frame, i| [saturation(frame.colour.data[i])])?;
+            self.plain_codes = Some(means.iter().map(|[m]| *m < PLAIN_CODE_SATURATION).collect());
         }
         Ok(self.plain_codes.as_deref().unwrap_or(&[]))
+    }
+
+    /// Per code, the mean of `pixel` (given the decoded frame and a pixel index) over the centre
+    /// 2x2 cells of the code decoded alone as a uniform 4x4-cell patch (64 codes per decoder
+    /// call).
+    fn code_patch_means<const N: usize>(
+        &self,
+        pixel: impl Fn(&RgbdFrame, usize) -> [f32; N],
+    ) -> Result<Vec<[f32; N]>, ModelError> {
+        let k = self.config.n_embed;
+        let f = self.config.downsample_factor();
+        let (g, batch) = (4usize, 64usize);
+        let mut means = Vec::with_capacity(k);
+        for start in (0..k).step_by(batch) {
+            let codes: Vec<u32> = (start..(start + batch).min(k)).map(|c| c as u32).collect();
+            let b = codes.len();
+            let idx: Vec<u32> = codes.iter().flat_map(|&c| std::iter::repeat_n(c, g * g)).collect();
+            let rows = self.model.quantize.lookup(&idx, &self.device);
+            let [_, d] = rows.dims();
+            let z_q = rows.reshape([b, g, g, d]).permute([0, 3, 1, 2]);
+            for frame in unpack(self.model.decode(z_q), &self.config.depth)? {
+                let w = frame.width() as usize;
+                let (mut sum, mut n) = ([0.0f32; N], 0.0f32);
+                for y in f..(g - 1) * f {
+                    for x in f..(g - 1) * f {
+                        for (acc, v) in sum.iter_mut().zip(pixel(&frame, y * w + x)) {
+                            *acc += v;
+                        }
+                        n += 1.0;
+                    }
+                }
+                means.push(sum.map(|v| v / n.max(1.0)));
+            }
+        }
+        Ok(means)
     }
 
     /// Decodes one code per latent cell (row-major `[h, w]`) into a frame.

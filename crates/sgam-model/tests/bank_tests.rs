@@ -1,23 +1,14 @@
 //! Completion from a code bank: a hole takes a bank frame's codes, a thin band at the border
 //! waits (no depth), and a bank of another codebook is refused.
 
+mod common;
+
 use std::sync::Arc;
 
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
-use sgam_core::{Image, Intrinsics, RgbdFrame};
+use common::frame;
+use sgam_core::Intrinsics;
 use sgam_model::bank::CodeBank;
 use sgam_model::{default_device, ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
-
-fn frame(w: u32, h: u32, seed: u64) -> RgbdFrame {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let colour = (0..w * h).map(|_| [rng.random(), rng.random(), rng.random()]).collect();
-    let depth = (0..w * h).map(|_| rng.random_range(8.0..14.0)).collect();
-    RgbdFrame {
-        colour: Image { width: w, height: h, data: colour },
-        depth_m: Image { width: w, height: h, data: depth },
-    }
-}
 
 /// A tiny generative refiner and a bank of four random frames' codes.
 #[allow(clippy::unwrap_used)] // a test helper: a failure fails the test

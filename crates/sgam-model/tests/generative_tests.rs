@@ -2,8 +2,11 @@
 //! (MaskGIT-style) sampling, ray channels, checkpoints, and a tiny model that learns a
 //! two-pattern world in the right proportion.
 
+mod common;
+
 use std::collections::BTreeMap;
 
+use common::frame;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Image, Intrinsics, RgbdFrame};
@@ -13,16 +16,6 @@ use sgam_model::packing::{pack_input, pack_values};
 use sgam_model::params::{named_tensors, NamedTensor};
 use sgam_model::quantize::{quantize, select_codes, select_codes_by_class};
 use sgam_model::{default_device, ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
-
-fn frame(w: u32, h: u32, seed: u64) -> RgbdFrame {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let colour = (0..w * h).map(|_| [rng.random(), rng.random(), rng.random()]).collect();
-    let depth = (0..w * h).map(|_| rng.random_range(8.0..14.0)).collect();
-    RgbdFrame {
-        colour: Image { width: w, height: h, data: colour },
-        depth_m: Image { width: w, height: h, data: depth },
-    }
-}
 
 fn flat(w: u32, h: u32, top: [f32; 3], bottom: [f32; 3]) -> RgbdFrame {
     let colour = (0..w * h).map(|p| if p / w < h / 2 { top } else { bottom }).collect();

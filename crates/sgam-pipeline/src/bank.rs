@@ -53,6 +53,12 @@ impl std::fmt::Display for BankSpec {
 }
 
 impl BankSpec {
+    /// [`BankSpec::resolve`] for a run from `seed`: the bundled bank fits a synthetic
+    /// CLEVR-Infinite seed at 256 px.
+    pub fn resolve_for(&self, seed: &crate::SeedSpec, bundled_model: bool) -> BankSpec {
+        self.resolve(matches!(seed, crate::SeedSpec::Synthetic { res: 256, .. }), bundled_model)
+    }
+
     /// [`BankSpec::Auto`] made concrete: the bundled bank when the seed's frames are the
     /// bundled bank's kind (`fits`: synthetic CLEVR-Infinite at 256 px) and the model the
     /// bundled one (`bundled_model`), else none; other choices as they are.

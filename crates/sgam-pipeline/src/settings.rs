@@ -762,25 +762,23 @@ impl RunSettings {
             );
         }
         let trajectory = self.path.spec(self.steps, &seed, preset.step_m)?;
-        let seed_for_bank = seed.clone();
         let m = &self.map;
         // the oracle is the true world: its pixels are never changed
         let invents = self.refiner.effective() != RefinerKind::Oracle;
         let p = &self.invented;
+        let refiner = match self.refiner_spec() {
+            RefinerSpec::Model { model, options, bank } => {
+                let bank = bank.resolve_for(&seed, model.is_none());
+                RefinerSpec::Model { model, options, bank }
+            }
+            other => other,
+        };
         Ok(RunConfig {
             version: RUN_CONFIG_VERSION,
             seed,
             trajectory,
             steps: self.steps,
-            refiner: match self.refiner_spec() {
-                RefinerSpec::Model { model, options, bank } => {
-                    // the bundled bank holds 256 px frames of the dataset's camera
-                    let bank_fits = matches!(seed_for_bank, crate::SeedSpec::Synthetic { res: 256, .. });
-                    let bank = bank.resolve(bank_fits, model.is_none());
-                    RefinerSpec::Model { model, options, bank }
-                }
-                other => other,
-            },
+            refiner,
             map: sgam_map::TsdfConfig {
                 voxel_size_m: m.voxel_size.unwrap_or(preset.voxel_size_m),
                 trunc_voxels: m.trunc_voxels.unwrap_or(preset.trunc_voxels),

@@ -159,8 +159,7 @@ pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>>
     Ok(match run.refiner_spec() {
         RefinerSpec::Model { model, options, bank } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
-            let fits = matches!(run.seed.spec()?, sgam_pipeline::SeedSpec::Synthetic { res: 256, .. });
-            r.set_bank(bank.resolve(fits, model.is_none()).load()?)?;
+            r.set_bank(bank.resolve_for(&run.seed.spec()?, model.is_none()).load()?)?;
             Some(r)
         }
         RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,
