@@ -60,4 +60,6 @@ pub use seeds::{read_clevr_template, read_google_earth_seed, read_seed_rgbd, See
 pub use sequence::{detect_layout, Layout, Sequence};
 /// The sRGB transfer (glTF vertex colours are linear); defined in `sgam-core`.
 pub use sgam_core::srgb_to_linear;
-pub use snapshot::{encode_snapshot, parse_snapshot, read_snapshot, write_snapshot, SNAPSHOT_MAGIC};
+pub use snapshot::{
+    encode_snapshot, parse_snapshot, read_snapshot, write_snapshot, write_snapshot_with, SNAPSHOT_MAGIC,
+};

@@ -9,6 +9,7 @@
 //! here (the map's own versioned format). The checksum covers the whole file, so a flipped bit
 //! anywhere is an error, never a silently different run.
 
+use std::io::Write;
 use std::path::Path;
 
 use crate::IoError;
@@ -31,8 +32,44 @@ pub fn encode_snapshot(version: u32, state_json: &[u8], payload: &[u8]) -> Vec<u
 
 /// Writes a snapshot atomically (see [`crate::write_atomic`]).
 pub fn write_snapshot(path: &Path, version: u32, state_json: &[u8], payload: &[u8]) -> Result<(), IoError> {
-    let bytes = encode_snapshot(version, state_json, payload);
-    crate::write_atomic(path, |w| std::io::Write::write_all(w, &bytes))
+    write_snapshot_with(path, version, state_json, |w| w.write_all(payload))
+}
+
+/// Writes a snapshot atomically whose payload `payload` writes, straight to the file through
+/// the checksum: a large map is never held twice in memory.
+pub fn write_snapshot_with(
+    path: &Path,
+    version: u32,
+    state_json: &[u8],
+    payload: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<(), IoError> {
+    crate::write_atomic(path, |w| {
+        let mut out = Crc32Writer { w, crc: crc32fast::Hasher::new() };
+        out.write_all(SNAPSHOT_MAGIC)?;
+        out.write_all(&version.to_le_bytes())?;
+        out.write_all(&(state_json.len() as u64).to_le_bytes())?;
+        out.write_all(state_json)?;
+        payload(&mut out)?;
+        let crc = out.crc.finalize();
+        out.w.write_all(&crc.to_le_bytes())
+    })
+}
+
+/// A writer that keeps the CRC-32 of what passes through it.
+struct Crc32Writer<'a, W: Write> {
+    w: &'a mut W,
+    crc: crc32fast::Hasher,
+}
+
+impl<W: Write> Write for Crc32Writer<'_, W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.w.write(buf)?;
+        self.crc.update(&buf[..n]);
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.w.flush()
+    }
 }
 
 /// Splits snapshot `bytes` (`path` names the file in errors) into its state and payload after
@@ -105,6 +142,18 @@ mod tests {
         let bytes = valid();
         let (state, payload) = parse_snapshot(Path::new("s.bin"), &bytes, 3).unwrap();
         assert_eq!((state, payload), (&br#"{"steps":4}"#[..], &[9u8; 40][..]));
+    }
+
+    #[test]
+    fn a_streamed_snapshot_has_the_bytes_of_an_encoded_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("s.bin");
+        write_snapshot_with(&path, 3, br#"{"steps":4}"#, |w| {
+            w.write_all(&[9u8; 15])?;
+            w.write_all(&[9u8; 25])
+        })
+        .unwrap();
+        assert!(std::fs::read(&path).unwrap() == valid());
     }
 
     #[test]

@@ -57,6 +57,48 @@ impl BlockMesh {
     }
 }
 
+/// Merges block meshes (`(block key, mesh)`, in the order given, colours filled), keeping
+/// triangles that pass `keep`: vertices on an edge two blocks share become one.
+pub(crate) fn weld_block_meshes<'a>(
+    blocks: impl Iterator<Item = (IVec3, &'a BlockMesh)>,
+    keep: impl Fn(&[Vec3; 3]) -> bool,
+) -> TriMesh {
+    let mut out = TriMesh::default();
+    let mut global: FxHashMap<EdgeKey, u32> = FxHashMap::default();
+    let mut local_to_global: Vec<u32> = Vec::new();
+    for (key, m) in blocks {
+        if m.is_empty() {
+            continue;
+        }
+        let origin = key * BLOCK_SIZE;
+        local_to_global.clear();
+        local_to_global.resize(m.positions.len(), u32::MAX);
+        for tri in &m.triangles {
+            let p = tri.map(|i| m.positions[i as usize]);
+            if !keep(&p) {
+                continue;
+            }
+            let mut g = [0u32; 3];
+            for k in 0..3 {
+                let li = tri[k] as usize;
+                if local_to_global[li] == u32::MAX {
+                    let next = out.positions.len() as u32;
+                    let (local, axis) = edge_of_slot(m.edges[li]);
+                    let gi = *global.entry((origin + local, axis as u8)).or_insert(next);
+                    if gi == next {
+                        out.positions.push(m.positions[li]);
+                        out.colours.push(m.colours.get(li).copied().unwrap_or(Voxel::EMPTY.colour));
+                    }
+                    local_to_global[li] = gi;
+                }
+                g[k] = local_to_global[li];
+            }
+            out.triangles.push(g);
+        }
+    }
+    out
+}
+
 /// Grid point and axis of a vertex's edge slot ([`BlockMesh::edges`]).
 #[inline]
 fn edge_of_slot(slot: u16) -> (IVec3, usize) {
@@ -257,41 +299,7 @@ impl TsdfMap {
             let k = self.layer.key(i);
             (k.x, k.y, k.z)
         });
-        let mut out = TriMesh::default();
-        let mut global: FxHashMap<EdgeKey, u32> = FxHashMap::default();
-        let mut local_to_global: Vec<u32> = Vec::new();
-        for id in ids {
-            let m = &self.meshes[id as usize];
-            if m.is_empty() {
-                continue;
-            }
-            let origin = self.layer.key(id) * BLOCK_SIZE;
-            local_to_global.clear();
-            local_to_global.resize(m.positions.len(), u32::MAX);
-            for tri in &m.triangles {
-                let p = tri.map(|i| m.positions[i as usize]);
-                if !keep(&p) {
-                    continue;
-                }
-                let mut g = [0u32; 3];
-                for k in 0..3 {
-                    let li = tri[k] as usize;
-                    if local_to_global[li] == u32::MAX {
-                        let next = out.positions.len() as u32;
-                        let (local, axis) = edge_of_slot(m.edges[li]);
-                        let gi = *global.entry((origin + local, axis as u8)).or_insert(next);
-                        if gi == next {
-                            out.positions.push(m.positions[li]);
-                            out.colours.push(m.colours[li]);
-                        }
-                        local_to_global[li] = gi;
-                    }
-                    g[k] = local_to_global[li];
-                }
-                out.triangles.push(g);
-            }
-        }
-        out
+        weld_block_meshes(ids.into_iter().map(|id| (self.layer.key(id), &self.meshes[id as usize])), keep)
     }
 
     /// Ids of blocks whose AABB intersects `[min, max]` and passes `pred(block_min, block_max)`

@@ -26,6 +26,28 @@ pub struct Rendered {
 }
 
 impl Rendered {
+    /// Takes `other`'s pixels where it hit a surface nearer than this rendering did (or where
+    /// this one hit nothing): two parts of a map rendered apart, then merged, give what the
+    /// whole map renders (up to ties between equal depths). Errors on another image size.
+    pub fn merge_nearer(&mut self, other: &Rendered) -> Result<(), crate::MapError> {
+        if (self.depth_m.width, self.depth_m.height) != (other.depth_m.width, other.depth_m.height) {
+            return Err(crate::MapError::InvalidContent(format!(
+                "merging a {}x{} rendering into a {}x{} one",
+                other.depth_m.width, other.depth_m.height, self.depth_m.width, self.depth_m.height
+            )));
+        }
+        for i in 0..self.covered.len() {
+            if other.covered[i] && (!self.covered[i] || other.depth_m.data[i] < self.depth_m.data[i]) {
+                self.covered[i] = true;
+                self.depth_m.data[i] = other.depth_m.data[i];
+                self.colour.data[i] = other.colour.data[i];
+                self.back_facing[i] = other.back_facing[i];
+            }
+        }
+        self.blocks_visited += other.blocks_visited;
+        Ok(())
+    }
+
     fn empty(width: u32, height: u32) -> Self {
         let n = width as usize * height as usize;
         Self {

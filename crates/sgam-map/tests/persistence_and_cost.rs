@@ -68,7 +68,7 @@ fn corrupt_streams_are_errors() {
     version[8] = 9;
     assert!(matches!(
         TsdfMap::read_from(&mut version.as_slice()),
-        Err(MapError::UnsupportedVersion { found: 9, supported: 1 })
+        Err(MapError::UnsupportedVersion { found: 9, supported: 2 })
     ));
     // Trailing garbage.
     let mut longer = bytes.clone();
@@ -76,7 +76,7 @@ fn corrupt_streams_are_errors() {
     assert!(TsdfMap::read_from(&mut longer.as_slice()).is_err());
     // Well-formed streams (valid checksum) holding values no map can contain: a block key near
     // the i32 limit, a NaN tsdf.
-    let header = 8 + 4 + 21 + 8;
+    let header = 8 + 4 + 21 + 8 + 8;
     let resealed = |mut b: Vec<u8>| {
         let body = b.len() - 4;
         let crc = crc32fast::hash(&b[..body]);
@@ -88,7 +88,7 @@ fn corrupt_streams_are_errors() {
     let err = TsdfMap::read_from(&mut resealed(key).as_slice()).unwrap_err();
     assert!(matches!(err, MapError::InvalidContent(_)) && err.to_string().contains("block key"), "{err}");
     let mut nan = bytes.clone();
-    nan[header + 12..header + 16].copy_from_slice(&f32::NAN.to_le_bytes());
+    nan[header + 20..header + 24].copy_from_slice(&f32::NAN.to_le_bytes());
     let err = TsdfMap::read_from(&mut resealed(nan).as_slice()).unwrap_err();
     assert!(matches!(err, MapError::InvalidContent(_)) && err.to_string().contains("non-finite"), "{err}");
 }

@@ -7,7 +7,7 @@ mod common;
 use common::{camera, render_analytic, Shape};
 use glam::IVec3;
 use sgam_core::{Camera, Vec3};
-use sgam_map::{EvictedBlock, TsdfConfig, TsdfMap};
+use sgam_map::{read_tile, write_tile, EvictedBlock, MapError, TsdfConfig, TsdfMap};
 
 fn corridor() -> Vec<Shape> {
     let mut s = vec![Shape::Plane { normal: Vec3::Z, offset: 0.0 }];
@@ -36,6 +36,19 @@ fn path() -> Vec<Camera> {
         .collect()
 }
 
+/// `blocks` of super-block `sk` written to a tile and read back (and written again: the same
+/// bytes).
+fn through_tile(config: &TsdfConfig, sk: IVec3, blocks: Vec<EvictedBlock>) -> Vec<EvictedBlock> {
+    let mut bytes = Vec::new();
+    write_tile(&mut bytes, config, sk, &blocks).unwrap();
+    let (key, back) = read_tile(&bytes, config).unwrap();
+    assert_eq!((key, back.len()), (sk, blocks.len()));
+    let mut again = Vec::new();
+    write_tile(&mut again, config, sk, &back).unwrap();
+    assert!(again == bytes, "a tile read back writes other bytes");
+    back
+}
+
 fn box_distance(p: Vec3, (lo, hi): (Vec3, Vec3)) -> f32 {
     (p - p.clamp(lo, hi)).length()
 }
@@ -48,7 +61,7 @@ fn evicting_far_super_blocks_and_restoring_them_renders_the_same_frames() {
     let frames: Vec<_> = cams.iter().map(|c| render_analytic(&scene, c)).collect();
     let (mut kept, mut streamed) = (TsdfMap::new(config), TsdfMap::new(config));
     let mut away: Vec<(IVec3, Vec<EvictedBlock>)> = Vec::new();
-    let (mut evicted, mut restored, mut fewest) = (0usize, 0usize, f64::INFINITY);
+    let (mut evicted, mut restored, mut fewest, mut saved) = (0usize, 0usize, f64::INFINITY, false);
     for i in 0..cams.len() - 1 {
         let (cam, next) = (&cams[i], &cams[i + 1]);
         // take back what this step may touch: integration here, rendering at the next camera
@@ -88,11 +101,31 @@ fn evicting_far_super_blocks_and_restoring_them_renders_the_same_frames() {
                 blocks = rest;
                 m
             };
-            away.push((sk, mine));
+            away.push((sk, through_tile(&config, sk, mine)));
+        }
+        // at the far end, the streamed map goes through its file and on from there, as a
+        // resumed run does (the blocks away stay away)
+        if i == cams.len() / 2 {
+            // the tiles away, each rendered alone and merged with the resident part, draw
+            // what the whole map draws from high above
+            let above = camera(Vec3::new(20.0, 0.0, 20.0), Vec3::new(20.0, 0.01, 0.0), 96, 64, 40.0);
+            let whole = kept.rasterize_range(&above, 1.0, 100.0);
+            let mut merged = streamed.rasterize_range(&above, 1.0, 100.0);
+            for (_, blocks) in &away {
+                let tile = TsdfMap::from_evicted(config, blocks.clone()).unwrap();
+                merged.merge_nearer(&tile.rasterize_range(&above, 1.0, 100.0)).unwrap();
+            }
+            assert!(whole.covered.iter().filter(|c| **c).count() > 500);
+            assert!(merged.covered == whole.covered && merged.depth_m.data == whole.depth_m.data);
+            let mut bytes = Vec::new();
+            streamed.write_to(&mut bytes).unwrap();
+            streamed = TsdfMap::read_from(&mut bytes.as_slice()).unwrap();
+            saved = true;
         }
         fewest = fewest.min(streamed.block_count() as f64 / kept.block_count().max(1) as f64);
     }
     assert!(evicted > 0 && restored > 0, "evicted {evicted}, restored {restored}: the path must exercise both");
+    assert!(saved);
     assert!(fewest < 0.7, "at its farthest the streamed map held {fewest:.2} of the blocks");
     // everything back: the same world mesh
     for (_, blocks) in away {
@@ -101,6 +134,9 @@ fn evicting_far_super_blocks_and_restoring_them_renders_the_same_frames() {
     assert_eq!(streamed.block_keys(), kept.block_keys());
     let (a, b) = (kept.extract_mesh(), streamed.extract_mesh());
     assert!(a.positions == b.positions && a.triangles == b.triangles && a.colours == b.colours);
+    // the world mesh is the union of the super-blocks' meshes
+    let parts: usize = kept.super_block_keys().into_iter().map(|sk| kept.super_block_mesh(sk).triangles.len()).sum();
+    assert_eq!(parts, a.triangles.len());
 }
 
 #[test]
@@ -119,4 +155,80 @@ fn a_block_is_restored_once_and_only_into_its_own_map() {
     assert!(e.contains("already in the map"), "{e}");
     let e = TsdfMap::new(config).restore_blocks(copy).unwrap_err().to_string();
     assert!(e.contains("another map"), "{e}");
+}
+
+#[test]
+fn a_damaged_or_foreign_tile_is_an_error_never_a_panic() {
+    let config = TsdfConfig { voxel_size_m: 0.1, trunc_voxels: 3.0, depth_max_m: 8.0, ..TsdfConfig::default() };
+    let cams = path();
+    let mut m = TsdfMap::new(config);
+    m.integrate(&render_analytic(&corridor(), &cams[0]), &cams[0]);
+    m.update_mesh();
+    let sk = m.super_block_keys()[0];
+    let blocks = m.evict_super_blocks(&[sk]);
+    let mut bytes = Vec::new();
+    write_tile(&mut bytes, &config, sk, &blocks).unwrap();
+    // every flipped byte and every cut is refused
+    for i in (0..bytes.len()).step_by(bytes.len() / 97 + 1) {
+        let mut b = bytes.clone();
+        b[i] ^= 0x5a;
+        assert!(read_tile(&b, &config).is_err(), "byte {i} flipped was accepted");
+    }
+    for cut in [0, 7, 11, 30, bytes.len() / 2, bytes.len() - 1] {
+        assert!(read_tile(&bytes[..cut], &config).is_err(), "cut at {cut} was accepted");
+    }
+    // another map's voxels, another format
+    let other = TsdfConfig { voxel_size_m: 0.05, ..config };
+    let e = read_tile(&bytes, &other).unwrap_err().to_string();
+    assert!(e.contains("0.1 m voxels") && e.contains("0.05 m voxels"), "{e}");
+    let mut map_file = Vec::new();
+    m.write_to(&mut map_file).unwrap();
+    assert!(matches!(read_tile(&map_file, &config), Err(MapError::BadMagic { .. })));
+    // a block given under the wrong super-block is refused at writing
+    let e = write_tile(&mut Vec::new(), &config, sk + IVec3::X, &blocks).unwrap_err().to_string();
+    assert!(e.contains("not in super-block"), "{e}");
+}
+
+#[test]
+fn a_map_file_keeps_allocation_order_and_a_version_1_file_still_loads() {
+    let config = TsdfConfig { voxel_size_m: 0.1, trunc_voxels: 3.0, depth_max_m: 8.0, ..TsdfConfig::default() };
+    let cams = path();
+    let mut m = TsdfMap::new(config);
+    for c in &cams[..6] {
+        m.integrate(&render_analytic(&corridor(), c), c);
+    }
+    // the blocks of a far super-block go, the map is saved and loaded, they come back: only a
+    // loaded map that kept allocation order takes them
+    let far = *m.super_block_keys().last().unwrap();
+    let away = m.evict_super_blocks(&[far]);
+    assert!(!away.is_empty());
+    let mut bytes = Vec::new();
+    m.write_to(&mut bytes).unwrap();
+    let mut loaded = TsdfMap::read_from(&mut bytes.as_slice()).unwrap();
+    loaded.restore_blocks(away.clone()).unwrap();
+    m.restore_blocks(away).unwrap();
+    let (mut a, mut b) = (Vec::new(), Vec::new());
+    m.write_to(&mut a).unwrap();
+    loaded.write_to(&mut b).unwrap();
+    assert!(a == b, "a map saved, loaded and given its blocks back differs from the one that kept them");
+    m.update_mesh();
+    loaded.update_mesh();
+    assert!(m.rasterize(&cams[8]).depth_m.data == loaded.rasterize(&cams[8]).depth_m.data);
+    // version 1: no next order, no per-block order (blocks take key order)
+    let header = 8 + 4 + 21;
+    let mut v1 = bytes[..header].to_vec();
+    v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+    v1.extend_from_slice(&bytes[header + 8..header + 16]);
+    let block = 12 + 8 + 512 * 20;
+    for chunk in bytes[header + 16..bytes.len() - 4].chunks(block) {
+        v1.extend_from_slice(&chunk[..12]);
+        v1.extend_from_slice(&chunk[20..]);
+    }
+    let crc = crc32fast::hash(&v1);
+    v1.extend_from_slice(&crc.to_le_bytes());
+    let old = TsdfMap::read_from(&mut v1.as_slice()).unwrap();
+    assert_eq!(
+        old.block_keys(),
+        m.block_keys().into_iter().filter(|k| sgam_map::super_block_of(*k) != far).collect::<Vec<_>>()
+    );
 }

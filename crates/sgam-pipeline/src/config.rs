@@ -76,6 +76,10 @@ pub struct RunConfig {
     /// ([`GeneratorConfig::carve_free_space`]); runs written before it existed read as off.
     #[serde(default)]
     pub carve_free_space: bool,
+    /// Bound on the map's memory, MB: beyond it, far super-blocks go to tiles on disk
+    /// ([`crate::tiles`]). 0 = no bound (runs written before it existed read as 0).
+    #[serde(default)]
+    pub max_map_mb: usize,
 }
 
 impl RunConfig {
@@ -92,6 +96,17 @@ impl RunConfig {
             carve_free_space: self.carve_free_space,
             ..clevr_generator_config(self.run_seed)
         }
+    }
+
+    /// How far beyond its reach a camera looks before far tiles come back
+    /// ([`crate::tiles::MapStreaming::new`]): eight blocks, and one and a half greedy steps
+    /// more for the greedy planner, which renders the cells around the camera.
+    pub fn stream_margin_m(&self) -> f32 {
+        let greedy = match self.trajectory {
+            crate::TrajectorySpec::Greedy { step_m, .. } => 1.5 * step_m,
+            _ => 0.0,
+        };
+        8.0 * self.map.block_size_m() + greedy
     }
 
     /// Checks a configuration read back from a snapshot: its version, counts within bounds, a

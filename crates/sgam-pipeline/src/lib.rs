@@ -39,6 +39,7 @@ pub mod run;
 mod seeds;
 pub mod settings;
 pub mod snapshot;
+pub mod tiles;
 
 pub use bank::BankSpec;
 pub use config::{OutputSettings, RunConfig, MAX_GRID, MAX_RES, MAX_STEPS, RUN_CONFIG_VERSION};

@@ -8,6 +8,7 @@ use std::time::Instant;
 use sgam_map::TsdfMap;
 
 use crate::snapshot::{write_snapshot, SnapshotState};
+use crate::tiles::{MapStreaming, TileStore};
 use crate::{
     build_refiner, AnyRefiner, Keyframes, PipelineError, Result, RunConfig, Seed, StepTimings, WorldGenerator,
 };
@@ -59,6 +60,9 @@ pub struct Generated {
     pub steps_this_run: usize,
     /// Wall time of this invocation's steps, seconds.
     pub wall_s: f64,
+    /// The map's far part on disk ([`crate::tiles`]): the world is `generator.map` plus these
+    /// tiles.
+    pub streaming: MapStreaming,
 }
 
 /// Runs (or, with `resume`, continues) `config` in the run folder `dir`, writing a snapshot after
@@ -80,33 +84,39 @@ pub fn generate(
     gconfig.tsdf.validate()?;
     let mut keyframes = Keyframes::new(dir, gconfig.source_radius_m, 96);
     let resumed = resume.is_some();
-    let (map, mut timings) = match resume {
+    let (map, mut timings, tile_index) = match resume {
         Some(mut r) => {
             for c in &r.state.cameras {
                 keyframes.push_camera(*c);
             }
             // the map file does not store the threshold: the run's configuration holds it
             r.map.set_weight_threshold(gconfig.tsdf.weight_threshold);
-            (r.map, r.state.timings)
+            (r.map, r.state.timings, r.state.tiles)
         }
-        None => (TsdfMap::new(gconfig.tsdf), Vec::new()),
+        None => (TsdfMap::new(gconfig.tsdf), Vec::new(), Default::default()),
     };
+    let tiles = TileStore::open(dir, gconfig.tsdf, &tile_index)?;
+    let mut streaming = MapStreaming::new(config.max_map_mb, config.stream_margin_m(), tiles);
     let mut generator = WorldGenerator::new(map, keyframes, refiner, gconfig);
     generator.keep_guidance(config.outputs.guidance_png);
-    let snapshot = |generator: &RunGenerator, timings: &[StepTimings]| {
+    // the map's state on disk: its resident part in the snapshot, the rest in the tiles it
+    // names; the files of tiles taken back go once the snapshot no longer names them
+    let snapshot = |generator: &RunGenerator, timings: &[StepTimings], streaming: &mut MapStreaming| {
         let state = SnapshotState {
             config: config.clone(),
             cameras: generator.keyframes.cameras().to_vec(),
             timings: timings.to_vec(),
             model_crc32,
+            tiles: streaming.tiles.index(),
         };
-        write_snapshot(dir, &state, &generator.map)
+        write_snapshot(dir, &state, &generator.map)?;
+        streaming.tiles.committed()
     };
     if !resumed {
         generator.seed(&seed.camera, seed.frame.clone())?;
         observer.after_seed(&mut generator)?;
         // a snapshot from the start: a run killed before its first snapshot interval is resumable
-        snapshot(&generator, &timings)?;
+        snapshot(&generator, &timings, &mut streaming)?;
     }
     let done = generator.keyframes.len();
     let mut poses = config.trajectory.pose_source(&seed.camera, config.steps, generator.keyframes.cameras())?;
@@ -115,15 +125,21 @@ pub fn generate(
     let mut this_run = 0usize;
     let mut finished = false;
     for i in done..total {
+        // what the pose source may read around the last camera, then what the step may read
+        // and write around the next, is in memory
+        let last = generator.keyframes.cameras().last().copied();
+        streaming.bring_near(&mut generator.map, &last.into_iter().collect::<Vec<_>>())?;
         let Some(camera) = poses.next_camera(&mut generator.map) else { break };
+        streaming.bring_near(&mut generator.map, &[camera])?;
         let t = generator.step(&camera).map_err(|e| PipelineError::Step { index: i, source: Box::new(e) })?;
+        streaming.let_go_far(&mut generator.map, &camera)?;
         timings.push(t);
         this_run += 1;
         observer.after_step(i, total, &mut generator, &t)?;
         finished = i + 1 == total;
         let stopping = stop_after.is_some_and(|n| this_run >= n);
         if finished || stopping || i % config.outputs.snapshot_every == 0 {
-            snapshot(&generator, &timings)?;
+            snapshot(&generator, &timings, &mut streaming)?;
         }
         if stopping && !finished {
             break;
@@ -137,5 +153,6 @@ pub fn generate(
         finished: !stopped_early,
         steps_this_run: this_run,
         wall_s: start.elapsed().as_secs_f64(),
+        streaming,
     })
 }

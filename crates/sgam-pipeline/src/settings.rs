@@ -553,6 +553,12 @@ pub struct MapSettings {
     /// Ablation: no global map; the guidance is warped from the previous frame only.
     #[arg(long)]
     pub no_map: bool,
+    /// Bound on the map's memory, MB. Beyond it, the parts of the world far from the camera
+    /// (beyond what a step can see, plus a margin) are written to tiles in RUN/tiles and come
+    /// back when the camera returns: a run of any length stays within it (the frames are the
+    /// same as with no bound). 0 = no bound.
+    #[arg(long, default_value_t = crate::tiles::DEFAULT_MAX_MAP_MB)]
+    pub max_map_mb: usize,
 }
 
 impl Default for MapSettings {
@@ -565,6 +571,7 @@ impl Default for MapSettings {
             k_sources: None,
             source_radius: None,
             no_map: false,
+            max_map_mb: crate::tiles::DEFAULT_MAX_MAP_MB,
         }
     }
 }
@@ -587,6 +594,9 @@ impl MapSettings {
         in_range("--depth-max", self.depth_max, 0.1..=sgam_map::MAX_DEPTH_M)?;
         if let Some(c) = self.weight_cap {
             in_range("--weight-cap", c, 1.0..=1e6)?;
+        }
+        if self.max_map_mb != 0 {
+            in_range("--max-map-mb", self.max_map_mb, 16..=1 << 20)?;
         }
         Ok(())
     }
@@ -795,6 +805,7 @@ impl RunSettings {
             snap_flying_pixels: invents && p.flying_pixels == FlyingPixels::Snap,
             carve_free_space: invents && p.free_space == FreeSpace::Carve,
             outputs: self.outputs.settings(),
+            max_map_mb: m.max_map_mb,
         })
     }
 }

@@ -30,6 +30,9 @@ pub struct SnapshotState {
     /// CRC-32 of the model file the run uses (`None` for the stand-ins): a resumed run refuses a
     /// file that changed since.
     pub model_crc32: Option<u32>,
+    /// The map's tiles on disk ([`crate::tiles`]); none in runs written before they existed.
+    #[serde(default)]
+    pub tiles: crate::tiles::TileIndex,
 }
 
 /// Writes `dir/snapshot.bin` atomically.
@@ -37,9 +40,9 @@ pub fn write_snapshot(dir: &Path, state: &SnapshotState, map: &TsdfMap) -> Resul
     let path = dir.join(SNAPSHOT_FILE);
     let json = serde_json::to_vec(state)
         .map_err(|e| PipelineError::Corrupt { path: path.clone(), msg: format!("serialising the state: {e}") })?;
-    let mut payload = Vec::new();
-    map.write_to(&mut payload)?;
-    sgam_io::write_snapshot(&path, SNAPSHOT_VERSION, &json, &payload)?;
+    sgam_io::write_snapshot_with(&path, SNAPSHOT_VERSION, &json, |w| {
+        map.write_to(&mut std::io::BufWriter::with_capacity(1 << 20, w)).map_err(std::io::Error::other)
+    })?;
     Ok(())
 }
 

@@ -37,6 +37,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
         ground_snap_m: None,
         snap_flying_pixels: false,
         carve_free_space: false,
+        max_map_mb: 0,
     }
 }
 
@@ -396,4 +397,88 @@ fn the_domain_check_tells_the_synthetic_world_from_a_seed_the_model_never_saw() 
     let foreign = sgam_pipeline::seed_reconstruction_psnr(None, &seed(noise)).unwrap();
     assert!(clevr > sgam_pipeline::DOMAIN_PSNR_DB, "synthetic seed at {clevr:.1} dB");
     assert!(foreign < sgam_pipeline::DOMAIN_PSNR_DB, "scrambled seed at {foreign:.1} dB");
+}
+
+/// A run long enough for a test to leave parts of its map behind: 2 cm voxels (so a small
+/// margin), depth cut at 15 m (the seed sees the ground 9-14 m away), lawn-mower rows 33 m long
+/// (out along one row, back along the next).
+fn streaming_config(max_map_mb: usize, trajectory: TrajectorySpec) -> RunConfig {
+    let mut c = config(32, 160, trajectory, RefinerSpec::Null { fill: true });
+    c.map.voxel_size_m = 0.02;
+    c.map.depth_max_m = 15.0;
+    c.outputs.snapshot_every = 8;
+    c.max_map_mb = max_map_mb;
+    c
+}
+
+#[test]
+fn a_run_whose_map_goes_to_tiles_grows_the_same_frames_and_resumes_from_them() {
+    let rows = TrajectorySpec::Boustrophedon { side: 82, step_m: 0.408 };
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b) = (tmp.path().join("kept"), tmp.path().join("tiled"));
+    let kept = generate(&a, &streaming_config(0, rows.clone()), None, None, None, &mut Quiet).unwrap();
+    assert!(kept.streaming.tiles.is_empty() && !a.join("tiles").exists(), "with no bound nothing goes to disk");
+    // bounded to 1 MB, stopped after 101 steps (out along the first row and some way back),
+    // with a tile written after that snapshot (as by a process killed between snapshots):
+    // the resumed run deletes it, takes tiles back on the way home and grows the same frames
+    let tiled_config = streaming_config(1, rows.clone());
+    let part = generate(&b, &tiled_config, None, None, Some(101), &mut Quiet).unwrap();
+    assert!(!part.finished && part.streaming.evicted > 0, "nothing went to tiles on the way out");
+    drop(part);
+    let orphan = b.join("tiles").join("0_0_0-999999.tile");
+    std::fs::write(&orphan, b"written after the snapshot").unwrap();
+    let (state, map) = read_snapshot(&b).unwrap();
+    let rest = generate(&b, &tiled_config, Some(Resume { state, map }), None, None, &mut Quiet).unwrap();
+    assert!(rest.finished && !orphan.exists());
+    let (evicted, restored) = (rest.streaming.evicted, rest.streaming.restored);
+    assert!(evicted > 0 && restored > 0, "{evicted} tiles written, {restored} taken back after the resume");
+    assert!(rest.generator.map.block_count() < kept.generator.map.block_count());
+    assert_eq!(kept.generator.keyframes.cameras(), rest.generator.keyframes.cameras());
+    assert!(frame_files(&a) == frame_files(&b), "frames differ when the map goes to tiles");
+    // the last snapshot names exactly the tile files on disk
+    let (state, _) = read_snapshot(&b).unwrap();
+    let mut named: Vec<String> = state.tiles.tiles.iter().map(|t| t.file_name()).collect();
+    let mut on_disk: Vec<String> = std::fs::read_dir(b.join("tiles"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    named.sort();
+    on_disk.sort();
+    assert!(!named.is_empty());
+    assert_eq!(named, on_disk);
+}
+
+#[test]
+fn a_missing_or_damaged_tile_stops_a_resume_naming_the_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("run");
+    let c = streaming_config(1, TrajectorySpec::Boustrophedon { side: 82, step_m: 0.408 });
+    let part = generate(&dir, &c, None, None, Some(120), &mut Quiet).unwrap();
+    assert!(part.streaming.tiles.len() > 1, "the run left no tiles behind");
+    drop(part);
+    let (state, _) = read_snapshot(&dir).unwrap();
+    // damage the tile the camera comes back to first: the last row's start is the first
+    // row's end, so any tile will do once the walk turns; take the one the run took back
+    // last by damaging them all
+    for t in &state.tiles.tiles {
+        let p = dir.join("tiles").join(t.file_name());
+        let mut bytes = std::fs::read(&p).unwrap();
+        let mid = bytes.len() / 2;
+        bytes[mid] ^= 0x20;
+        std::fs::write(&p, bytes).unwrap();
+    }
+    let (s, map) = read_snapshot(&dir).unwrap();
+    let e = generate(&dir, &c, Some(Resume { state: s, map }), None, None, &mut Quiet).unwrap_err();
+    let msg = format!("{e:#}");
+    let full: String = std::iter::successors(Some(&e as &dyn std::error::Error), |e| e.source())
+        .map(|e| e.to_string())
+        .collect::<Vec<_>>()
+        .join(": ");
+    assert!(full.contains(".tile") && full.contains("damaged tile"), "{msg} / {full}");
+    // a missing one is named before anything runs
+    let gone = dir.join("tiles").join(state.tiles.tiles[0].file_name());
+    std::fs::remove_file(&gone).unwrap();
+    let (s, map) = read_snapshot(&dir).unwrap();
+    let e = generate(&dir, &c, Some(Resume { state: s, map }), None, None, &mut Quiet).unwrap_err().to_string();
+    assert!(e.contains(&state.tiles.tiles[0].file_name()) && e.contains("missing"), "{e}");
 }

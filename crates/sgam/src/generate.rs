@@ -91,6 +91,8 @@ pub const RUN_OUTPUTS: &[&str] = &[
     "strip.png",
     "run.json",
     "mesh-*",
+    sgam_pipeline::tiles::TILES_DIR,
+    crate::tiled::MESH_TILES_DIR,
 ];
 
 impl GenerateArgs {

@@ -22,6 +22,7 @@ mod overview;
 mod progress;
 mod serve;
 mod synth;
+mod tiled;
 mod train;
 mod train_bank;
 mod train_common;

@@ -7,7 +7,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use indicatif::ProgressBar;
-use sgam_core::Camera;
+use sgam_core::{Camera, TriMesh};
 use sgam_pipeline::run::RunGenerator;
 use sgam_pipeline::{
     frame_file_names, Generated, Keyframes, RunConfig, RunObserver, Seed, StepTimings, TrajectorySpec,
@@ -163,10 +163,25 @@ fn write_depth_png(dir: &Path, index: usize, depth_m: &sgam_core::Image<f32>) ->
 pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Result<()> {
     let (generator, timings, wall_s) = (&mut run.generator, &run.timings, run.wall_s);
     let outputs = &config.outputs;
-    let mesh = generator.map.extract_mesh();
-    sgam_io::write_mesh(&dir.join("mesh.ply"), &mesh)?;
-    sgam_io::write_mesh(&dir.join("mesh.glb"), &mesh)?;
-    sgam_pipeline::save_map(&dir.join("map.bin"), &generator.map)?;
+    // a world partly in tiles is written tile by tile, and as one mesh only when it is small
+    // enough to build
+    let mut tiled = if run.streaming.tiles.is_empty() {
+        None
+    } else {
+        Some(crate::tiled::write_mesh_tiles(dir, &mut generator.map, &run.streaming)?)
+    };
+    let single = tiled.as_ref().is_none_or(|t| t.single.is_some());
+    let mesh = match &mut tiled {
+        Some(t) => t.single.take().unwrap_or_default(),
+        None => generator.map.extract_mesh(),
+    };
+    if single {
+        sgam_io::write_mesh(&dir.join("mesh.ply"), &mesh)?;
+        sgam_io::write_mesh(&dir.join("mesh.glb"), &mesh)?;
+    }
+    if tiled.is_none() {
+        sgam_pipeline::save_map(&dir.join("map.bin"), &generator.map)?;
+    }
     let cams = generator.keyframes.cameras();
     let frames = (0..cams.len())
         .map(|i| {
@@ -188,12 +203,34 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
     if outputs.video && outputs.mp4 {
         crate::video::write_flythrough_mp4(dir, cams.len())?;
     }
-    if outputs.orbit_video {
+    if outputs.orbit_video && tiled.is_none() {
         crate::video::write_orbit_mp4(&dir.join("orbit.mp4"), &generator.map, &mesh, crate::view::up_world(&cams[0]))?;
     }
-    if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams[0], 1280, 800) {
-        let img = crate::overview::render_overview(&generator.map, &cam, near, far);
-        sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
+    match &tiled {
+        None => {
+            if let Some((cam, near, far)) = crate::overview::overview_camera(&mesh, &cams[0], 1280, 800) {
+                let img = crate::overview::render_overview(&generator.map, &cam, near, far);
+                sgam_io::write_rgb_png(&dir.join("overview.png"), &img)?;
+            }
+        }
+        Some(t) => {
+            // framed on the world's bounds, drawn tile by tile
+            let corners = t.bounds().map(|(lo, hi)| TriMesh {
+                positions: (0..8)
+                    .map(|i| {
+                        let pick = |bit: usize, a: f32, b: f32| if i & bit == 0 { a } else { b };
+                        sgam_core::Vec3::new(pick(1, lo.x, hi.x), pick(2, lo.y, hi.y), pick(4, lo.z, hi.z))
+                    })
+                    .collect(),
+                ..TriMesh::default()
+            });
+            if let Some((cam, near, far)) =
+                corners.and_then(|c| crate::overview::overview_camera(&c, &cams[0], 1280, 800))
+            {
+                let r = crate::tiled::rasterize_world(&generator.map, &run.streaming, &cam, near, far)?;
+                sgam_io::write_rgb_png(&dir.join("overview.png"), &crate::overview::shade_overview(&r, &cam))?;
+            }
+        }
     }
     sgam_io::write_rgb_png(&dir.join("strip.png"), &crate::overview::frame_strip(dir, cams.len(), 6)?)?;
     let median = |v: &[f64]| sgam_metrics::median(v).unwrap_or(0.0);
@@ -210,7 +247,14 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
         },
         "median_missing_fraction": median(&timings.iter().map(|t| t.missing_fraction as f64).collect::<Vec<_>>()),
         "map": { "blocks": generator.map.block_count(), "bytes": generator.map.memory_bytes(),
-                 "vertices": mesh.positions.len(), "triangles": mesh.triangles.len() },
+                 "vertices": mesh.positions.len(),
+                 "triangles": tiled.as_ref().map_or(mesh.triangles.len() as u64, |t| t.triangles),
+                 "max_map_mb": config.max_map_mb,
+                 "tiles_on_disk": run.streaming.tiles.len(),
+                 "tiles_disk_bytes": run.streaming.tiles.disk_bytes(),
+                 "tile_blocks": run.streaming.tiles.entries().map(|e| e.blocks as u64).sum::<u64>(),
+                 "tiles_written_this_invocation": run.streaming.evicted,
+                 "tiles_taken_back_this_invocation": run.streaming.restored },
         "step_ms": timings.iter().map(|t| (t.total_ms * 1000.0).round() / 1000.0).collect::<Vec<_>>(),
         // flatness over a long run at a glance: the median step of each 1000 steps (the last
         // entry covers what remains)
@@ -218,7 +262,8 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
     });
     let bytes = serde_json::to_vec_pretty(&summary)?;
     sgam_io::write_atomic(&dir.join("run.json"), |w| std::io::Write::write_all(w, &bytes))?;
-    let page = crate::view::write_world_html(dir, crate::view::DEFAULT_EMBED_LIMIT_BYTES)?;
+    let page =
+        if single { Some(crate::view::write_world_html(dir, crate::view::DEFAULT_EMBED_LIMIT_BYTES)?) } else { None };
     eprintln!(
         "done: {} steps, median {:.1} ms/step (refine {:.1}, map {:.1})",
         timings.len(),
@@ -226,22 +271,56 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
         col(|t| t.refine_ms),
         col(|t| t.render_ms + t.warp_ms + t.integrate_ms + t.mesh_ms)
     );
-    eprintln!("  mesh:        {}  ({} vertices)", dir.join("mesh.ply").display(), mesh.positions.len());
-    eprintln!("  mesh (glTF): {}", dir.join("mesh.glb").display());
+    if single {
+        eprintln!("  mesh:        {}  ({} vertices)", dir.join("mesh.ply").display(), mesh.positions.len());
+        eprintln!("  mesh (glTF): {}", dir.join("mesh.glb").display());
+    }
+    if let Some(t) = &tiled {
+        eprintln!(
+            "  mesh tiles:  {}/  ({} tiles, {} triangles; index.json lists them){}",
+            dir.join(crate::tiled::MESH_TILES_DIR).display(),
+            t.tiles.len(),
+            t.triangles,
+            if single {
+                String::new()
+            } else {
+                format!(
+                    "; no single mesh.ply/mesh.glb or world.html: the world has more than {} triangles",
+                    crate::tiled::SINGLE_MESH_MAX_TRIANGLES
+                )
+            }
+        );
+        eprintln!(
+            "  map:         {} blocks in memory, {} tiles in {} ({:.0} MB; --max-map-mb {})",
+            generator.map.block_count(),
+            run.streaming.tiles.len(),
+            dir.join(sgam_pipeline::tiles::TILES_DIR).display(),
+            run.streaming.tiles.disk_bytes() as f64 / 1e6,
+            config.max_map_mb
+        );
+    }
     if outputs.video {
         eprintln!("  fly-through: {}", dir.join("flythrough.gif").display());
     }
     if outputs.video && outputs.mp4 {
         eprintln!("  video:       {}", dir.join("flythrough.mp4").display());
     }
-    if outputs.orbit_video {
+    if outputs.orbit_video && tiled.is_none() {
         eprintln!("  orbit:       {}", dir.join("orbit.mp4").display());
+    } else if outputs.orbit_video {
+        eprintln!("  orbit:       not written: the orbit renders map.bin, and this world's map is in tiles");
     }
-    eprintln!(
-        "  viewer:      {}  (open it in a browser{})",
-        page.path.display(),
-        if page.mesh_embedded { String::new() } else { format!("; large mesh: sgam view {} --serve", dir.display()) }
-    );
+    if let Some(page) = &page {
+        eprintln!(
+            "  viewer:      {}  (open it in a browser{})",
+            page.path.display(),
+            if page.mesh_embedded {
+                String::new()
+            } else {
+                format!("; large mesh: sgam view {} --serve", dir.display())
+            }
+        );
+    }
     eprintln!("  overview:    {}  (and strip.png: 6 frames)", dir.join("overview.png").display());
     eprintln!("  poses:       {}  (nerfstudio / instant-ngp)", dir.join("transforms.json").display());
     eprintln!("  frames:      {}/rgb, {}/depth", dir.display(), dir.display());

@@ -45,7 +45,11 @@ pub fn overview_camera(mesh: &TriMesh, seed: &Camera, width: u32, height: u32) -
 /// The map's mesh rendered at `camera`, shaded by the rendered depth's normals (a light from
 /// above the camera) on a white background.
 pub fn render_overview(map: &TsdfMap, camera: &Camera, near: f32, far: f32) -> Image<[f32; 3]> {
-    let r = map.rasterize_range(camera, near, far);
+    shade_overview(&map.rasterize_range(camera, near, far), camera)
+}
+
+/// A rendering at `camera` shaded as [`render_overview`] shades it.
+pub fn shade_overview(r: &sgam_map::Rendered, camera: &Camera) -> Image<[f32; 3]> {
     let k = camera.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
     let point = |u: usize, v: usize| -> Option<Vec3> {

@@ -309,3 +309,52 @@ fn bad_seed_and_trajectory_inputs_give_clear_errors() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("snapshot"));
 }
+
+/// Faces of a binary PLY (its header's `element face N`).
+fn ply_faces(path: &Path) -> usize {
+    let bytes = std::fs::read(path).unwrap();
+    let header = String::from_utf8_lossy(&bytes[..bytes.len().min(512)]).into_owned();
+    let line = header.lines().find(|l| l.starts_with("element face")).unwrap();
+    line.rsplit(' ').next().unwrap().parse().unwrap()
+}
+
+/// Triangles of a binary glTF: its first primitive's index count / 3.
+fn glb_triangles(path: &Path) -> u64 {
+    let bytes = std::fs::read(path).unwrap();
+    assert_eq!(&bytes[..4], b"glTF", "{}", path.display());
+    let len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    assert_eq!(&bytes[16..20], b"JSON");
+    let json: serde_json::Value = serde_json::from_slice(&bytes[20..20 + len]).unwrap();
+    let indices = json["meshes"][0]["primitives"][0]["indices"].as_u64().unwrap() as usize;
+    json["accessors"][indices]["count"].as_u64().unwrap() / 3
+}
+
+#[test]
+fn a_run_bounded_by_max_map_mb_writes_its_world_as_tiles_and_as_one_mesh() {
+    // 2 cm voxels along 33 m rows: the map outgrows 16 MB, and the far part goes to tiles
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    let run_s = run.to_str().unwrap();
+    #[rustfmt::skip]
+    ok(&["generate", "--out", run_s, "--refiner", "null", "--res", "32", "--voxel-size", "0.02", "--depth-max", "15",
+         "--trajectory", "boustrophedon", "--grid", "82", "--steps", "100", "--max-map-mb", "16",
+         "--snapshot-every", "1000", "--no-video"]);
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    let map = &summary["map"];
+    let on_disk = map["tiles_on_disk"].as_u64().unwrap();
+    assert!(on_disk > 0 && map["tiles_taken_back_this_invocation"].as_u64().unwrap() > 0, "{map}");
+    assert_eq!(std::fs::read_dir(run.join("tiles")).unwrap().count() as u64, on_disk);
+    // the mesh tiles cover the world once: their triangles are the single mesh's
+    let index: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("mesh-tiles/index.json")).unwrap()).unwrap();
+    let tiles = index["tiles"].as_array().unwrap();
+    let sum: u64 = tiles.iter().map(|t| t["triangles"].as_u64().unwrap()).sum();
+    assert!(tiles.len() as u64 > on_disk, "{} mesh tiles for {on_disk} tiles on disk", tiles.len());
+    assert_eq!(sum, map["triangles"].as_u64().unwrap());
+    assert_eq!(ply_faces(&run.join("mesh.ply")) as u64, sum);
+    for t in tiles.iter().take(5) {
+        let glb = run.join("mesh-tiles").join(t["file"].as_str().unwrap());
+        assert_eq!(glb_triangles(&glb), t["triangles"].as_u64().unwrap(), "{}", glb.display());
+    }
+    assert!(run.join("overview.png").is_file() && !run.join("map.bin").exists());
+}

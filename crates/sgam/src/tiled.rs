@@ -1,0 +1,160 @@
+//! The outputs of a run whose map went partly to tiles (`--max-map-mb`): the world mesh as one
+//! glTF per super-block (`mesh-tiles/X_Y_Z.glb`, with `mesh-tiles/index.json`), the single
+//! `mesh.ply`/`mesh.glb` when the world has at most [`SINGLE_MESH_MAX_TRIANGLES`], and the
+//! overview rendered tile by tile. Memory stays at one tile beside the resident map.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use glam::{IVec3, Vec3};
+use serde::Serialize;
+use sgam_core::{Camera, TriMesh};
+use sgam_map::{Rendered, TsdfMap};
+use sgam_pipeline::tiles::MapStreaming;
+
+/// The tiles' folder in the run folder.
+pub const MESH_TILES_DIR: &str = "mesh-tiles";
+/// Largest world (triangles) also written as one `mesh.ply`/`mesh.glb` (about 0.5 GB to build).
+pub const SINGLE_MESH_MAX_TRIANGLES: u64 = 16_000_000;
+
+/// One tile of `mesh-tiles/index.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct MeshTile {
+    /// Super-block key.
+    pub key: [i32; 3],
+    /// File name in `mesh-tiles/`.
+    pub file: String,
+    /// Bounds of its vertices, world frame.
+    pub min: [f32; 3],
+    /// Bounds of its vertices, world frame.
+    pub max: [f32; 3],
+    /// Vertices.
+    pub vertices: usize,
+    /// Triangles.
+    pub triangles: usize,
+}
+
+/// What [`write_mesh_tiles`] wrote.
+#[derive(Debug)]
+pub struct TiledWorld {
+    /// The tiles, by key.
+    pub tiles: Vec<MeshTile>,
+    /// Triangles of the whole world.
+    pub triangles: u64,
+    /// The whole world in one mesh (tiles appended, not welded across tiles), when it has at
+    /// most [`SINGLE_MESH_MAX_TRIANGLES`].
+    pub single: Option<TriMesh>,
+}
+
+impl TiledWorld {
+    /// Bounds of the world's vertices.
+    pub fn bounds(&self) -> Option<(Vec3, Vec3)> {
+        let mut it = self.tiles.iter().filter(|t| t.vertices > 0);
+        let first = it.next()?;
+        Some(it.fold((Vec3::from(first.min), Vec3::from(first.max)), |(lo, hi), t| {
+            (lo.min(Vec3::from(t.min)), hi.max(Vec3::from(t.max)))
+        }))
+    }
+}
+
+fn tile_name(key: [i32; 3]) -> String {
+    let [x, y, z] = key;
+    format!("{x}_{y}_{z}.glb")
+}
+
+/// Each tile's mesh: the resident map's super-blocks, then the tiles on disk. `each` gets the
+/// key and the mesh.
+fn for_each_tile_mesh(
+    map: &mut TsdfMap,
+    streaming: &MapStreaming,
+    mut each: impl FnMut([i32; 3], TriMesh) -> Result<()>,
+) -> Result<()> {
+    for sk in map.super_block_keys() {
+        let mesh = map.super_block_mesh(sk);
+        each(sk.to_array(), mesh)?;
+    }
+    for entry in streaming.tiles.entries() {
+        let blocks = streaming.tiles.read(entry)?;
+        each(entry.key, sgam_map::blocks_mesh(&blocks))?;
+    }
+    Ok(())
+}
+
+/// Writes `dir/mesh-tiles/` (a `.glb` per non-empty tile and `index.json`) for the world of
+/// `map` and `streaming`'s tiles.
+pub fn write_mesh_tiles(dir: &Path, map: &mut TsdfMap, streaming: &MapStreaming) -> Result<TiledWorld> {
+    let out = dir.join(MESH_TILES_DIR);
+    std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create the folder", out.display()))?;
+    let mut tiles = Vec::with_capacity(map.super_block_keys().len() + streaming.tiles.len());
+    let mut single = Some(TriMesh::default());
+    let mut triangles = 0u64;
+    for_each_tile_mesh(map, streaming, |key, mesh| {
+        let Some((lo, hi)) = mesh.bounds() else { return Ok(()) };
+        let file = tile_name(key);
+        sgam_io::write_mesh(&out.join(&file), &mesh)?;
+        triangles += mesh.triangles.len() as u64;
+        if triangles > SINGLE_MESH_MAX_TRIANGLES {
+            single = None;
+        }
+        if let Some(s) = &mut single {
+            s.append(&mesh);
+        }
+        tiles.push(MeshTile {
+            key,
+            file,
+            min: lo.to_array(),
+            max: hi.to_array(),
+            vertices: mesh.positions.len(),
+            triangles: mesh.triangles.len(),
+        });
+        Ok(())
+    })?;
+    tiles.sort_by_key(|t| t.key);
+    let world = TiledWorld { tiles, triangles, single };
+    let (lo, hi) = world.bounds().unwrap_or((Vec3::ZERO, Vec3::ZERO));
+    let index = serde_json::json!({
+        "format": 1,
+        "about": "the world mesh as one glTF per super-block of the map (8^3 blocks); tiles do not overlap",
+        "super_block_m": map.config().block_size_m() * 8.0,
+        "min": lo.to_array(), "max": hi.to_array(),
+        "triangles": world.triangles,
+        "tiles": world.tiles,
+    });
+    let bytes = serde_json::to_vec_pretty(&index)?;
+    sgam_io::write_atomic(&out.join("index.json"), |w| std::io::Write::write_all(w, &bytes))?;
+    Ok(world)
+}
+
+/// The world of `map` and `streaming`'s tiles rendered at `camera` within `[near, far]`: each
+/// tile alone, merged by depth.
+pub fn rasterize_world(
+    map: &TsdfMap,
+    streaming: &MapStreaming,
+    camera: &Camera,
+    near: f32,
+    far: f32,
+) -> Result<Rendered> {
+    let mut out = map.rasterize_range(camera, near, far);
+    for entry in streaming.tiles.entries() {
+        let (lo, hi) = map.super_block_box(IVec3::from_array(entry.key));
+        if !box_in_front(camera, lo, hi, near) {
+            continue;
+        }
+        let tile = TsdfMap::from_evicted(*map.config(), streaming.tiles.read(entry)?)?;
+        out.merge_nearer(&tile.rasterize_range(camera, near, far))?;
+    }
+    Ok(out)
+}
+
+/// False when every corner of the box lies behind the camera's near plane.
+fn box_in_front(camera: &Camera, lo: Vec3, hi: Vec3, near: f32) -> bool {
+    let to_camera = camera.world_from_camera.inverse();
+    (0..8).any(|i| {
+        let c = Vec3::new(
+            if i & 1 == 0 { lo.x } else { hi.x },
+            if i & 2 == 0 { lo.y } else { hi.y },
+            if i & 4 == 0 { lo.z } else { hi.z },
+        );
+        to_camera.transform_point(c).z >= near
+    })
+}
