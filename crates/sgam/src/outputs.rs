@@ -262,8 +262,8 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
     });
     let bytes = serde_json::to_vec_pretty(&summary)?;
     sgam_io::write_atomic(&dir.join("run.json"), |w| std::io::Write::write_all(w, &bytes))?;
-    let page =
-        if single { Some(crate::view::write_world_html(dir, crate::view::DEFAULT_EMBED_LIMIT_BYTES)?) } else { None };
+    // a tiled world's page opens on its coarse world (mesh-tiles/coarse.glb)
+    let page = crate::view::write_world_html(dir, crate::view::DEFAULT_EMBED_LIMIT_BYTES)?;
     eprintln!(
         "done: {} steps, median {:.1} ms/step (refine {:.1}, map {:.1})",
         timings.len(),
@@ -285,7 +285,7 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
                 String::new()
             } else {
                 format!(
-                    "; no single mesh.ply/mesh.glb or world.html: the world has more than {} triangles",
+                    "; no single mesh.ply/mesh.glb: the world has more than {} triangles",
                     crate::tiled::SINGLE_MESH_MAX_TRIANGLES
                 )
             }
@@ -310,17 +310,20 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
     } else if outputs.orbit_video {
         eprintln!("  orbit:       not written: the orbit renders map.bin, and this world's map is in tiles");
     }
-    if let Some(page) = &page {
-        eprintln!(
-            "  viewer:      {}  (open it in a browser{})",
-            page.path.display(),
-            if page.mesh_embedded {
-                String::new()
-            } else {
-                format!("; large mesh: sgam view {} --serve", dir.display())
-            }
-        );
-    }
+    eprintln!(
+        "  viewer:      {}  (open it in a browser{})",
+        page.path.display(),
+        if tiled.is_some() {
+            format!(
+                "; the whole world coarse, and served (sgam view {} --serve) full detail near the view",
+                dir.display()
+            )
+        } else if page.mesh_embedded {
+            String::new()
+        } else {
+            format!("; large mesh: sgam view {} --serve", dir.display())
+        }
+    );
     eprintln!("  overview:    {}  (and strip.png: 6 frames)", dir.join("overview.png").display());
     eprintln!("  poses:       {}  (nerfstudio / instant-ngp)", dir.join("transforms.json").display());
     eprintln!("  frames:      {}/rgb, {}/depth", dir.display(), dir.display());

@@ -1,8 +1,15 @@
 //! The outputs of a run whose map went partly to tiles (`--max-map-mb`): the world mesh as one
 //! glTF per super-block (`mesh-tiles/X_Y_Z.glb`, with `mesh-tiles/index.json`), the single
 //! `mesh.ply`/`mesh.glb` when the world has at most [`SINGLE_MESH_MAX_TRIANGLES`], and the
-//! overview rendered tile by tile. Memory stays at one tile beside the resident map.
+//! overview rendered tile by tile. Memory stays at one tile beside the resident map (and the
+//! coarse world).
+//!
+//! For the viewer, the tiles are grouped into cells of [`CELL_SUPERS`]^3 super-blocks, and the
+//! whole world is also written coarse (`mesh-tiles/coarse.glb`, vertex clustering to at most
+//! [`COARSE_MAX_TRIANGLES`], each cell's triangles a contiguous range): `world.html` opens on the
+//! coarse world and, served, loads the cells near the view in full detail.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{Context, Result};
@@ -14,8 +21,38 @@ use sgam_pipeline::tiles::MapStreaming;
 
 /// The tiles' folder in the run folder.
 pub const MESH_TILES_DIR: &str = "mesh-tiles";
+/// The coarse world in `mesh-tiles/`.
+pub const COARSE_FILE: &str = "coarse.glb";
+/// The tiles' index in `mesh-tiles/`.
+pub const INDEX_FILE: &str = "index.json";
 /// Largest world (triangles) also written as one `mesh.ply`/`mesh.glb` (about 0.5 GB to build).
 pub const SINGLE_MESH_MAX_TRIANGLES: u64 = 16_000_000;
+/// The coarse world (`mesh-tiles/coarse.glb`, what the viewer shows first) has at most this
+/// many triangles: its clustering cell doubles until it fits (about 8 MB of glTF).
+pub const COARSE_MAX_TRIANGLES: usize = 250_000;
+/// Super-blocks per side of a viewer cell: the unit the viewer loads in full detail (4^3
+/// super-blocks, 12.8 m at 5 cm voxels).
+pub const CELL_SUPERS: i32 = 4;
+
+/// A viewer cell of `mesh-tiles/index.json`: a group of tiles, its triangles in the coarse
+/// mesh, and the tiles' files for full detail.
+#[derive(Debug, Clone, Serialize)]
+pub struct MeshCell {
+    /// Cell key (super-block key / [`CELL_SUPERS`], rounded down).
+    pub key: [i32; 3],
+    /// Bounds of its tiles' vertices, world frame.
+    pub min: [f32; 3],
+    /// Bounds of its tiles' vertices, world frame.
+    pub max: [f32; 3],
+    /// Its first triangle in `coarse.glb`.
+    pub first: usize,
+    /// Its triangles in `coarse.glb`.
+    pub count: usize,
+    /// Its tiles' files in `mesh-tiles/`.
+    pub files: Vec<String>,
+    /// Triangles of its tiles in full detail.
+    pub triangles: usize,
+}
 
 /// One tile of `mesh-tiles/index.json`.
 #[derive(Debug, Clone, Serialize)]
@@ -39,6 +76,8 @@ pub struct MeshTile {
 pub struct TiledWorld {
     /// The tiles, by key.
     pub tiles: Vec<MeshTile>,
+    /// The viewer's cells, by key.
+    pub cells: Vec<MeshCell>,
     /// Triangles of the whole world.
     pub triangles: u64,
     /// The whole world in one mesh (tiles appended, not welded across tiles), when it has at
@@ -88,10 +127,30 @@ pub fn write_mesh_tiles(dir: &Path, map: &mut TsdfMap, streaming: &MapStreaming)
     let mut tiles = Vec::with_capacity(map.super_block_keys().len() + streaming.tiles.len());
     let mut single = Some(TriMesh::default());
     let mut triangles = 0u64;
+    let mut coarse_cell_m = 4.0 * map.config().voxel_size_m;
+    let mut cells: BTreeMap<[i32; 3], (MeshCell, TriMesh)> = BTreeMap::new();
     for_each_tile_mesh(map, streaming, |key, mesh| {
         let Some((lo, hi)) = mesh.bounds() else { return Ok(()) };
         let file = tile_name(key);
         sgam_io::write_mesh(&out.join(&file), &mesh)?;
+        let ckey = IVec3::from_array(key).div_euclid(IVec3::splat(CELL_SUPERS)).to_array();
+        let (cell, coarse) = cells.entry(ckey).or_insert_with(|| {
+            let empty = MeshCell {
+                key: ckey,
+                min: lo.to_array(),
+                max: hi.to_array(),
+                first: 0,
+                count: 0,
+                files: Vec::new(),
+                triangles: 0,
+            };
+            (empty, TriMesh::default())
+        });
+        cell.min = Vec3::from(cell.min).min(lo).to_array();
+        cell.max = Vec3::from(cell.max).max(hi).to_array();
+        cell.files.push(file.clone());
+        cell.triangles += mesh.triangles.len();
+        coarse.append(&mesh.clustered(coarse_cell_m));
         triangles += mesh.triangles.len() as u64;
         if triangles > SINGLE_MESH_MAX_TRIANGLES {
             single = None;
@@ -110,7 +169,25 @@ pub fn write_mesh_tiles(dir: &Path, map: &mut TsdfMap, streaming: &MapStreaming)
         Ok(())
     })?;
     tiles.sort_by_key(|t| t.key);
-    let world = TiledWorld { tiles, triangles, single };
+    // the coarse world: each cell's coarse tiles, coarser until the whole fits the budget
+    while cells.values().map(|(_, m)| m.triangles.len()).sum::<usize>() > COARSE_MAX_TRIANGLES {
+        coarse_cell_m *= 2.0;
+        for (_, m) in cells.values_mut() {
+            *m = m.clustered(coarse_cell_m);
+        }
+    }
+    let mut coarse = TriMesh::default();
+    let cells: Vec<MeshCell> = cells
+        .into_values()
+        .map(|(mut cell, m)| {
+            cell.first = coarse.triangles.len();
+            cell.count = m.triangles.len();
+            coarse.append(&m);
+            cell
+        })
+        .collect();
+    sgam_io::write_mesh(&out.join(COARSE_FILE), &coarse)?;
+    let world = TiledWorld { tiles, cells, triangles, single };
     let (lo, hi) = world.bounds().unwrap_or((Vec3::ZERO, Vec3::ZERO));
     let index = serde_json::json!({
         "format": 1,
@@ -118,10 +195,12 @@ pub fn write_mesh_tiles(dir: &Path, map: &mut TsdfMap, streaming: &MapStreaming)
         "super_block_m": map.config().block_size_m() * 8.0,
         "min": lo.to_array(), "max": hi.to_array(),
         "triangles": world.triangles,
+        "coarse": { "file": COARSE_FILE, "cell_m": coarse_cell_m, "triangles": coarse.triangles.len() },
+        "cells": world.cells,
         "tiles": world.tiles,
     });
     let bytes = serde_json::to_vec_pretty(&index)?;
-    sgam_io::write_atomic(&out.join("index.json"), |w| std::io::Write::write_all(w, &bytes))?;
+    sgam_io::write_atomic(&out.join(INDEX_FILE), |w| std::io::Write::write_all(w, &bytes))?;
     Ok(world)
 }
 

@@ -11,9 +11,15 @@
 //! - `poses[i]`: `world_from_camera` of frame `i`, OpenCV camera axes, 3x4 row-major (metres).
 //! - `intrinsics`: pixels; `seed`: index of the seed frame; `frames[i]`: `rgb/NNNNN.png`.
 //! - `thumbs`: `rgb[i]` JPEG data URIs (and `guidance` / `missing` when the run kept
-//!   `guidance/NNNNN.png` / `missing/NNNNN.png`).
+//!   `guidance/NNNNN.png` / `missing/NNNNN.png`); past 500 frames only every k-th frame has
+//!   one (the others are `""`, and the page shows the full-size frame).
 //! - `mesh`: `embedded` (base64 GLB in `<script id="sgam-mesh">`) or loaded from `src` next to
 //!   the page (needs `sgam view RUN --serve`), `bytes`, `vertices`, `triangles`.
+//! - `tiles`: `null`, or for a world written in tiles (`--max-map-mb`) its viewer cells: the
+//!   mesh above is then the coarse world (`mesh-tiles/coarse.glb`), each cell a range of its
+//!   triangles (`first`, `count`) with a box (page axes) and its tiles' files in `dir`; served,
+//!   the page loads the cells within `fine_within_m` of the view in full detail (at most
+//!   `max_fine_cells`) and hides their coarse triangles.
 //! - `live`: `null`, or the state URL the live page polls (`sgam generate --view`).
 
 use std::path::{Path, PathBuf};
@@ -65,6 +71,34 @@ struct MeshRef {
     version: u64,
 }
 
+/// A world written in tiles (`mesh-tiles/index.json`): the page shows the coarse world (the
+/// page's mesh) and, served, loads the cells near the view in full detail.
+#[derive(Debug, Serialize)]
+struct TilesRef {
+    /// Folder of the tiles' files, relative to the page.
+    dir: String,
+    /// Cells whose box is within this distance of the view's centre load in full detail, page
+    /// units (metres).
+    fine_within_m: f32,
+    /// At most this many cells in full detail at once.
+    max_fine_cells: usize,
+    cells: Vec<PageCell>,
+}
+
+/// A cell: its box (page axes), its triangles in the coarse mesh, its tiles' files.
+#[derive(Debug, Serialize)]
+struct PageCell {
+    min: [f32; 3],
+    max: [f32; 3],
+    first: usize,
+    count: usize,
+    files: Vec<String>,
+}
+
+/// Frames beyond this many get no thumbnail of their own (a 100,000-frame page stays small):
+/// every k-th frame has one, and the others show their full-size frame.
+const MAX_THUMBS: usize = 500;
+
 #[derive(Debug, Serialize)]
 struct LiveRef {
     state: String,
@@ -85,6 +119,7 @@ struct PageData {
     thumbs: Thumbs,
     frustum_every: usize,
     mesh: MeshRef,
+    tiles: Option<TilesRef>,
     live: Option<LiveRef>,
 }
 
@@ -203,6 +238,46 @@ fn page_html(data: &PageData, mesh_base64: &str) -> Result<String> {
     )
 }
 
+/// The viewer's cells of a tiled world from its `mesh-tiles/index.json`, in page axes.
+fn tiles_ref(index: &Path) -> Result<TilesRef> {
+    let bad = |what: &str| anyhow::anyhow!("{}: {what}", index.display());
+    let json: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(index).with_context(|| format!("{}: cannot read the tiles' index", index.display()))?,
+    )
+    .with_context(|| format!("{}: not the tiles' index", index.display()))?;
+    let super_m = json["super_block_m"].as_f64().ok_or_else(|| bad("no super_block_m"))? as f32;
+    let v3 = |v: &serde_json::Value| -> Result<Vec3> {
+        let a: Vec<f32> = v.as_array().into_iter().flatten().filter_map(|x| x.as_f64()).map(|x| x as f32).collect();
+        match a.as_slice() {
+            [x, y, z] => Ok(Vec3::new(*x, *y, *z)),
+            _ => Err(bad("a cell's bounds are not 3 numbers")),
+        }
+    };
+    let mut cells = Vec::new();
+    for c in json["cells"].as_array().ok_or_else(|| bad("no cells"))? {
+        let (lo, hi) = (sgam_io::world_to_gltf(v3(&c["min"])?), sgam_io::world_to_gltf(v3(&c["max"])?));
+        let count = |k: &str| c[k].as_u64().map(|n| n as usize).ok_or_else(|| bad("a cell has no triangle range"));
+        let files: Vec<String> =
+            c["files"].as_array().into_iter().flatten().filter_map(|f| f.as_str().map(str::to_string)).collect();
+        if files.iter().any(|f| crate::serve::request_path(&format!("/{f}")).is_none()) {
+            return Err(bad("a tile's file name is not a plain name"));
+        }
+        cells.push(PageCell {
+            min: lo.min(hi).to_array(),
+            max: lo.max(hi).to_array(),
+            first: count("first")?,
+            count: count("count")?,
+            files,
+        });
+    }
+    Ok(TilesRef {
+        dir: format!("{}/", crate::tiled::MESH_TILES_DIR),
+        fine_within_m: 1.5 * super_m * crate::tiled::CELL_SUPERS as f32,
+        max_fine_cells: 12,
+        cells,
+    })
+}
+
 /// Cameras of a run folder from its `transforms.json`, with their frames' relative paths.
 pub fn run_cameras(dir: &Path) -> Result<(Vec<Camera>, Vec<String>)> {
     let path = dir.join("transforms.json");
@@ -234,11 +309,22 @@ fn intrinsics_of(cams: &[Camera]) -> PageIntrinsics {
 /// page loads it from the neighbouring file (served by `sgam view --serve`).
 pub fn write_world_html(dir: &Path, embed_limit_bytes: u64) -> Result<PageInfo> {
     let (cams, frames) = run_cameras(dir)?;
-    let glb_path = dir.join("mesh.glb");
+    let index = dir.join(crate::tiled::MESH_TILES_DIR).join(crate::tiled::INDEX_FILE);
+    let (src, tiles) = if index.is_file() {
+        (format!("{}/{}", crate::tiled::MESH_TILES_DIR, crate::tiled::COARSE_FILE), Some(tiles_ref(&index)?))
+    } else {
+        ("mesh.glb".to_string(), None)
+    };
+    let glb_path = dir.join(&src);
     let glb = std::fs::read(&glb_path).with_context(|| format!("{}: cannot read the mesh", glb_path.display()))?;
     let (vertices, triangles) = glb_counts(&glb_path, &glb)?;
     let embedded = glb.len() as u64 <= embed_limit_bytes;
-    let rgb: Vec<String> = frames.par_iter().map(|f| thumbnail(&dir.join(f))).collect::<Result<_>>()?;
+    let every = frames.len().div_ceil(MAX_THUMBS).max(1);
+    let rgb: Vec<String> = frames
+        .par_iter()
+        .enumerate()
+        .map(|(i, f)| if i % every == 0 || i + 1 == frames.len() { thumbnail(&dir.join(f)) } else { Ok(String::new()) })
+        .collect::<Result<_>>()?;
     let thumbs = Thumbs {
         rgb,
         guidance: optional_thumbs(dir, "guidance", cams.len())?,
@@ -255,7 +341,8 @@ pub fn write_world_html(dir: &Path, embed_limit_bytes: u64) -> Result<PageInfo> 
         frames,
         thumbs,
         frustum_every: frustum_every(cams.len()),
-        mesh: MeshRef { embedded, src: "mesh.glb".into(), bytes: glb.len() as u64, vertices, triangles, version: 0 },
+        mesh: MeshRef { embedded, src, bytes: glb.len() as u64, vertices, triangles, version: 0 },
+        tiles,
         live: None,
     };
     let mesh_b64 = if embedded { base64(&glb) } else { String::new() };
@@ -287,6 +374,7 @@ pub fn live_page_html(name: &str, every_ms: u32) -> Result<String> {
         thumbs: Thumbs::default(),
         frustum_every: 1,
         mesh: MeshRef { embedded: false, src: String::new(), bytes: 0, vertices: 0, triangles: 0, version: 0 },
+        tiles: None,
         live: Some(LiveRef { state: "live.json".into(), every_ms }),
     };
     page_html(&data, "")

@@ -413,3 +413,60 @@ fn the_page_opens_in_headless_chromium_with_the_mesh_on_screen() {
     assert!(covered > 0.2, "the mesh covers only {:.1} % of the middle of the window", 100.0 * covered);
     assert!(colours.len() > 30, "a flat picture ({} colours)", colours.len());
 }
+
+#[test]
+fn a_tiled_world_opens_coarse_and_served_loads_full_detail_near_the_view() {
+    let Some(bin) = find_chromium() else {
+        if std::env::var("CI").is_ok_and(|v| v == "true") {
+            panic!("CI=true but no chromium on PATH: .ci/run installs it (apt-get install chromium)");
+        }
+        eprintln!("skipping a_tiled_world_opens_coarse: no chromium found (set SGAM_CHROMIUM or install it)");
+        return;
+    };
+    // a world whose map outgrew --max-map-mb (2 cm voxels along 33 m rows), so it is in tiles
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("run");
+    #[rustfmt::skip]
+    ok(&["generate", "--out", run.to_str().unwrap(), "--refiner", "null", "--res", "32", "--voxel-size", "0.02",
+         "--depth-max", "15", "--trajectory", "boustrophedon", "--grid", "82", "--steps", "100",
+         "--max-map-mb", "16", "--snapshot-every", "1000", "--no-video"]);
+    let html = view(&run, &[]);
+    let data: serde_json::Value = serde_json::from_str(script(&html, "sgam-data")).unwrap();
+    assert_eq!(data["mesh"]["src"], "mesh-tiles/coarse.glb");
+    let cells = data["tiles"]["cells"].as_array().unwrap();
+    assert!(cells.len() > 4, "{} cells", cells.len());
+    let coarse = data["mesh"]["vertices"].as_u64().unwrap();
+    assert!(coarse > 1000, "{coarse} vertices in the coarse world");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_sgam"))
+        .args(["view", run.to_str().unwrap(), "--serve", "--port", "0", "--no-open"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut stdout = child.stdout.take().unwrap();
+    let mut printed = String::new();
+    let mut buf = [0u8; 256];
+    while printed.lines().count() < 2 {
+        let n = stdout.read(&mut buf).unwrap();
+        assert!(n > 0, "sgam view --serve ended early: {printed}");
+        printed.push_str(&String::from_utf8_lossy(&buf[..n]));
+    }
+    let url = format!("{}world.html", printed.lines().nth(1).unwrap().trim());
+    let out = chromium(&bin, &url, &[], Duration::from_secs(180));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let console: Vec<&str> = stderr.lines().filter(|l| l.contains(":CONSOLE")).collect();
+    eprintln!("console:\n{}", console.join("\n"));
+    // the whole world at once, coarse; then the cells near the view in full detail
+    let ready = console.iter().find(|l| l.contains("sgam-ready")).unwrap_or_else(|| panic!("never ready:\n{stderr}"));
+    assert!(ready.contains(&format!("vertices={coarse} ")) && ready.contains("errors=0\""), "{ready}");
+    let fine = console.iter().filter(|l| l.contains("sgam-fine cells=")).count();
+    assert!(fine >= 1, "no cell was loaded in full detail");
+    let is_error = |l: &str| {
+        let l = l.to_ascii_lowercase();
+        ["error", "uncaught", "exception", "failed", "gl_", "could not be loaded"].iter().any(|w| l.contains(w))
+    };
+    let errors: Vec<&str> = console.iter().copied().filter(|l| !l.contains("sgam-ready") && is_error(l)).collect();
+    assert!(errors.is_empty(), "console errors:\n{}", errors.join("\n"));
+}

@@ -213,6 +213,83 @@
     });
   }
 
+  // ---- tiles: a world written in tiles shows its coarse mesh at once and, served, the cells
+  // near the view's centre in full detail (their coarse triangles hidden) --------------------
+  function setupTiles() {
+    const t = data.tiles;
+    if (!t || !state.meshObject) return;
+    const obj = state.meshObject;
+    obj.geometry.clearGroups();
+    for (const c of t.cells) obj.geometry.addGroup(3 * c.first, 3 * c.count, 0);
+    obj.material = [obj.material, new THREE.MeshBasicMaterial({ visible: false })];
+    const group = new THREE.Group();
+    scene.add(group);
+    state.tiles = {
+      group, next: 0, loaded: 0, failed: 0,
+      cells: t.cells.map((c, k) => ({
+        k, files: c.files, fine: null, loading: false,
+        box: new THREE.Box3(new THREE.Vector3().fromArray(c.min), new THREE.Vector3().fromArray(c.max)),
+      })),
+    };
+  }
+  function tileBuffer(file) {
+    return fetch(data.tiles.dir + file).then((r) => {
+      if (!r.ok) throw new Error(file + ': HTTP ' + r.status);
+      return r.arrayBuffer();
+    }).then((buf) => new Promise((resolve, reject) => new GLTFLoader().parse(buf, '', resolve, reject)));
+  }
+  function showCoarse(cell, on) {
+    state.meshObject.geometry.groups[cell.k].materialIndex = on ? 0 : 1;
+  }
+  function loadCell(cell) {
+    const ts = state.tiles;
+    cell.loading = true;
+    Promise.all(cell.files.map(tileBuffer)).then((list) => {
+      const g = new THREE.Group();
+      for (const gltf of list) {
+        gltf.scene.traverse((o) => {
+          if (o.isMesh) o.material = new THREE.MeshBasicMaterial({ vertexColors: !!o.geometry.attributes.color, side: THREE.DoubleSide });
+        });
+        g.add(gltf.scene);
+      }
+      cell.fine = g;
+      ts.group.add(g);
+      showCoarse(cell, false);
+      ts.loaded++;
+      document.body.dataset.sgamFineCells = String(ts.group.children.length);
+      console.log('sgam-fine cells=' + ts.group.children.length + ' loaded=' + ts.loaded);
+    }, (e) => {
+      ts.failed++;
+      state.errors++;
+      showError('A tile of this world could not be loaded: ' + (e.message || e));
+    }).finally(() => { cell.loading = false; });
+  }
+  function dropCell(cell) {
+    state.tiles.group.remove(cell.fine);
+    cell.fine.traverse((o) => { if (o.isMesh) o.geometry.dispose(); });
+    cell.fine = null;
+    showCoarse(cell, true);
+    document.body.dataset.sgamFineCells = String(state.tiles.group.children.length);
+  }
+  /** Twice a second: full detail for the nearest cells within reach of the view's centre. */
+  function updateTiles(now) {
+    const ts = state.tiles;
+    if (!ts || location.protocol === 'file:' || now < ts.next || ts.failed) return;
+    ts.next = now + 500;
+    const centre = state.mode === 'walk' ? camera.position : controls.target;
+    const near = ts.cells
+      .map((c) => [c.box.distanceToPoint(centre), c])
+      .filter(([d]) => d <= data.tiles.fine_within_m)
+      .sort((a, b) => a[0] - b[0])
+      .slice(0, data.tiles.max_fine_cells)
+      .map(([, c]) => c);
+    const wanted = new Set(near);
+    for (const c of ts.cells) {
+      if (wanted.has(c) && !c.fine && !c.loading) loadCell(c);
+      else if (!wanted.has(c) && c.fine) dropCell(c);
+    }
+  }
+
   /** World size from the mesh (or the poses), camera planes, and on the first load the view:
    *  from behind the seed and above, the whole world in sight (like overview.png). */
   function fitWorld(first) {
@@ -356,6 +433,7 @@
     } else {
       controls.update();
     }
+    updateTiles(now);
     renderer.render(scene, camera);
   }
 
@@ -392,6 +470,8 @@
     const m = data.mesh;
     $('stats').textContent = (state.vertices || 0).toLocaleString('en') + ' vertices · ' + (m.triangles || 0).toLocaleString('en') +
       ' triangles (' + ((m.bytes || 0) / 1e6).toFixed(1) + ' MB) · ' + data.poses.length + ' frames' +
+      (data.tiles ? ' · coarse world in ' + data.tiles.cells.length + ' cells' +
+        (location.protocol === 'file:' ? ' (serve it for full detail: sgam view RUN --serve)' : ', full detail near the view') : '') +
       (data.live ? (state.finished ? ' · run finished' : ' · live') : '');
   }
 
@@ -435,6 +515,7 @@
     };
     loadMesh(data.mesh.embedded ? null : data.mesh.src, true).then(
       () => {
+        setupTiles();
         shown();
         // on screen: two frames rendered after the mesh went into the scene
         requestAnimationFrame(() => requestAnimationFrame(ready));
