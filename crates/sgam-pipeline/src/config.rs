@@ -37,6 +37,14 @@ pub struct OutputSettings {
     /// and the frame after the invented-pixel filters, side by side.
     #[serde(default)]
     pub guidance_png: bool,
+    /// A tiled world is also written as one mesh when it has at most this many triangles
+    /// (runs written before it existed read as the default, 16 million).
+    #[serde(default = "default_single_mesh_max_triangles")]
+    pub single_mesh_max_triangles: u64,
+}
+
+fn default_single_mesh_max_triangles() -> u64 {
+    (f64::from(crate::settings::DEFAULT_SINGLE_MESH_MAX_MTRI) * 1e6).round() as u64
 }
 
 /// A generation run, resolved.

@@ -631,7 +631,15 @@ pub struct OutputArgs {
     /// (to see where an invented object came from).
     #[arg(long)]
     pub guidance_png: bool,
+    /// A world whose map went to tiles (--max-map-mb) is always written as mesh tiles; it is also
+    /// written as one mesh.ply/mesh.glb when it has at most this many million triangles (0 =
+    /// never; about 30 MB of memory per million to build).
+    #[arg(long, default_value_t = DEFAULT_SINGLE_MESH_MAX_MTRI)]
+    pub single_mesh_max_mtri: f32,
 }
+
+/// Default of `--single-mesh-max-mtri`: 16 million triangles (about 0.5 GB to build).
+pub const DEFAULT_SINGLE_MESH_MAX_MTRI: f32 = 16.0;
 
 impl Default for OutputArgs {
     fn default() -> Self {
@@ -643,6 +651,7 @@ impl Default for OutputArgs {
             no_mp4: false,
             orbit_video: false,
             guidance_png: false,
+            single_mesh_max_mtri: DEFAULT_SINGLE_MESH_MAX_MTRI,
         }
     }
 }
@@ -652,6 +661,7 @@ impl OutputArgs {
     pub fn validate(&self) -> Result<()> {
         in_range("--snapshot-every", self.snapshot_every, 1..=MAX_STEPS)?;
         in_range("--mesh-every", self.mesh_every, 0..=MAX_STEPS)?;
+        in_range("--single-mesh-max-mtri", self.single_mesh_max_mtri, 0.0..=1000.0)?;
         Ok(())
     }
 
@@ -665,6 +675,7 @@ impl OutputArgs {
             mp4: !self.no_mp4,
             orbit_video: self.orbit_video,
             guidance_png: self.guidance_png,
+            single_mesh_max_triangles: (f64::from(self.single_mesh_max_mtri) * 1e6).round() as u64,
         }
     }
 }

@@ -33,6 +33,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
             mp4: false,
             orbit_video: false,
             guidance_png: false,
+            single_mesh_max_triangles: 16_000_000,
         },
         ground_snap_m: None,
         snap_flying_pixels: false,
@@ -427,9 +428,11 @@ fn a_run_whose_map_goes_to_tiles_grows_the_same_frames_and_resumes_from_them() {
     drop(part);
     let orphan = b.join("tiles").join("0_0_0-999999.tile");
     std::fs::write(&orphan, b"written after the snapshot").unwrap();
+    let cut = b.join("tiles").join(".0_0_1-999998.tile.tmp-4242-0");
+    std::fs::write(&cut, b"a write cut short").unwrap();
     let (state, map) = read_snapshot(&b).unwrap();
     let rest = generate(&b, &tiled_config, Some(Resume { state, map }), None, None, &mut Quiet).unwrap();
-    assert!(rest.finished && !orphan.exists());
+    assert!(rest.finished && !orphan.exists() && !cut.exists());
     let (evicted, restored) = (rest.streaming.evicted, rest.streaming.restored);
     assert!(evicted > 0 && restored > 0, "{evicted} tiles written, {restored} taken back after the resume");
     assert!(rest.generator.map.block_count() < kept.generator.map.block_count());

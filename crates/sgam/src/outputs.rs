@@ -168,7 +168,12 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
     let mut tiled = if run.streaming.tiles.is_empty() {
         None
     } else {
-        Some(crate::tiled::write_mesh_tiles(dir, &mut generator.map, &run.streaming)?)
+        Some(crate::tiled::write_mesh_tiles(
+            dir,
+            &mut generator.map,
+            &run.streaming,
+            outputs.single_mesh_max_triangles,
+        )?)
     };
     let single = tiled.as_ref().is_none_or(|t| t.single.is_some());
     let mesh = match &mut tiled {
@@ -285,8 +290,8 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
                 String::new()
             } else {
                 format!(
-                    "; no single mesh.ply/mesh.glb: the world has more than {} triangles",
-                    crate::tiled::SINGLE_MESH_MAX_TRIANGLES
+                    "; no single mesh.ply/mesh.glb: the world has more than --single-mesh-max-mtri {} million triangles",
+                    outputs.single_mesh_max_triangles as f64 / 1e6
                 )
             }
         );

@@ -1,6 +1,6 @@
 //! The outputs of a run whose map went partly to tiles (`--max-map-mb`): the world mesh as one
 //! glTF per super-block (`mesh-tiles/X_Y_Z.glb`, with `mesh-tiles/index.json`), the single
-//! `mesh.ply`/`mesh.glb` when the world has at most [`SINGLE_MESH_MAX_TRIANGLES`], and the
+//! `mesh.ply`/`mesh.glb` when the world has at most `--single-mesh-max-mtri` million triangles, and the
 //! overview rendered tile by tile. Memory stays at one tile beside the resident map (and the
 //! coarse world).
 //!
@@ -25,8 +25,6 @@ pub const MESH_TILES_DIR: &str = "mesh-tiles";
 pub const COARSE_FILE: &str = "coarse.glb";
 /// The tiles' index in `mesh-tiles/`.
 pub const INDEX_FILE: &str = "index.json";
-/// Largest world (triangles) also written as one `mesh.ply`/`mesh.glb` (about 0.5 GB to build).
-pub const SINGLE_MESH_MAX_TRIANGLES: u64 = 16_000_000;
 /// The coarse world (`mesh-tiles/coarse.glb`, what the viewer shows first) has at most this
 /// many triangles: its clustering cell doubles until it fits (about 8 MB of glTF).
 pub const COARSE_MAX_TRIANGLES: usize = 250_000;
@@ -81,7 +79,7 @@ pub struct TiledWorld {
     /// Triangles of the whole world.
     pub triangles: u64,
     /// The whole world in one mesh (tiles appended, not welded across tiles), when it has at
-    /// most [`SINGLE_MESH_MAX_TRIANGLES`].
+    /// most the run's `single_mesh_max_triangles`.
     pub single: Option<TriMesh>,
 }
 
@@ -119,13 +117,19 @@ fn for_each_tile_mesh(
     Ok(())
 }
 
-/// Writes `dir/mesh-tiles/` (a `.glb` per non-empty tile and `index.json`) for the world of
-/// `map` and `streaming`'s tiles.
-pub fn write_mesh_tiles(dir: &Path, map: &mut TsdfMap, streaming: &MapStreaming) -> Result<TiledWorld> {
+/// Writes `dir/mesh-tiles/` (a `.glb` per non-empty tile, `coarse.glb` and `index.json`) for the
+/// world of `map` and `streaming`'s tiles; keeps the world as one mesh when it has at most
+/// `single_max_triangles`.
+pub fn write_mesh_tiles(
+    dir: &Path,
+    map: &mut TsdfMap,
+    streaming: &MapStreaming,
+    single_max_triangles: u64,
+) -> Result<TiledWorld> {
     let out = dir.join(MESH_TILES_DIR);
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create the folder", out.display()))?;
     let mut tiles = Vec::with_capacity(map.super_block_keys().len() + streaming.tiles.len());
-    let mut single = Some(TriMesh::default());
+    let mut single = (single_max_triangles > 0).then(TriMesh::default);
     let mut triangles = 0u64;
     let mut coarse_cell_m = 4.0 * map.config().voxel_size_m;
     let mut cells: BTreeMap<[i32; 3], (MeshCell, TriMesh)> = BTreeMap::new();
@@ -152,7 +156,7 @@ pub fn write_mesh_tiles(dir: &Path, map: &mut TsdfMap, streaming: &MapStreaming)
         cell.triangles += mesh.triangles.len();
         coarse.append(&mesh.clustered(coarse_cell_m));
         triangles += mesh.triangles.len() as u64;
-        if triangles > SINGLE_MESH_MAX_TRIANGLES {
+        if triangles > single_max_triangles {
             single = None;
         }
         if let Some(s) = &mut single {
