@@ -179,19 +179,25 @@ pub struct GroundSnapConfig {
     pub normal_stride_px: u32,
     /// Pixels whose ray meets the plane beyond this are left alone, metres (the map's depth cut).
     pub max_depth_m: f32,
+    /// Invented pixels less than this above the plane (or below it) are put on it whatever the
+    /// surface around them looks like, metres (0 = off). Where new ground meets observed ground
+    /// the refiner's depth steps by a few centimetres: the surface there is tilted, fails the
+    /// up-facing test, and fuses into ridges 5-25 cm high along the frame's far border.
+    pub flatten_below_m: f32,
 }
 
 impl GroundSnapConfig {
     /// Tolerance `tolerance_m`, surfaces within 60 degrees of the plane, normals over 2 pixels.
     pub fn new(tolerance_m: f32, max_depth_m: f32) -> Self {
-        Self { tolerance_m, max_tilt_deg: 60.0, normal_stride_px: 2, max_depth_m }
+        Self { tolerance_m, max_tilt_deg: 60.0, normal_stride_px: 2, max_depth_m, flatten_below_m: 0.0 }
     }
 }
 
 /// Puts back on `plane` every pixel marked in `missing` that the refiner made ground-like: its
 /// depth places it less than `tolerance_m` above the plane (or anywhere below it) and the surface
 /// around it faces up (within `max_tilt_deg` of the plane's normal, so an object's side, however
-/// low, keeps its depth). Only where the pixel's ray meets the plane within `max_depth_m`.
+/// low, keeps its depth), or it lies less than `flatten_below_m` above the plane whatever the
+/// surface around it. Only where the pixel's ray meets the plane within `max_depth_m`.
 /// Observed pixels are never changed. Returns how many pixels moved.
 pub fn snap_to_ground(
     frame: &mut RgbdFrame,
@@ -213,7 +219,14 @@ pub fn snap_to_ground(
     let mut snapped = Vec::new();
     for (u, v, i, z) in marked_depths(depth, missing) {
         let uv = Vec2::new(u as f32, v as f32);
-        if plane.height(camera.unproject_world(uv, z)) >= cfg.tolerance_m {
+        let height = plane.height(camera.unproject_world(uv, z));
+        if height >= cfg.tolerance_m {
+            continue;
+        }
+        if height < cfg.flatten_below_m {
+            if let Some(g) = plane.depth_at(camera, uv).filter(|g| *g <= cfg.max_depth_m) {
+                snapped.push((i, g));
+            }
             continue;
         }
         let (u0, u1, v0, v1) = (u.saturating_sub(s), (u + s).min(w - 1), v.saturating_sub(s), (v + s).min(h - 1));
@@ -318,6 +331,52 @@ mod tests {
             }
         }
         assert!(wall_low > 20, "the test must see the wall's low band ({wall_low} px)");
+    }
+
+    #[test]
+    fn a_low_seam_with_holes_is_flattened_only_with_flatten_below() {
+        // new ground 12 cm above the plane, drawn with holes (every fourth column has no
+        // depth): a pixel whose normal needs a hole fails the up-facing test and keeps its
+        // height; the flattening band takes every low pixel back to the plane, holes stay holes
+        let cam = camera();
+        let plane = GroundPlane { normal: Vec3::Z, offset: 1.0, inlier_fraction: 1.0 };
+        let truth = frame(&cam, |_, _| false);
+        let (w, h) = (truth.width(), truth.height());
+        let mut f = truth.clone();
+        let mut missing = vec![false; (w * h) as usize];
+        let o = cam.centre_world();
+        for v in 0..h / 2 {
+            for u in 0..w {
+                let (i, d) = ((v * w + u) as usize, *truth.depth_m.at(u, v));
+                if d <= 0.0 {
+                    continue;
+                }
+                let p = cam.unproject_world(Vec2::new(u as f32, v as f32), d);
+                f.depth_m.data[i] =
+                    if u % 4 == 0 { 0.0 } else { d * (plane.height(o) - 0.12) / (plane.height(o) - plane.height(p)) };
+                missing[i] = true;
+            }
+        }
+        let lumps = |g: &RgbdFrame| {
+            (0..(w * h) as usize)
+                .filter(|&i| missing[i] && g.depth_m.data[i] > 0.0)
+                .filter(|&i| {
+                    let (u, v) = (i as u32 % w, i as u32 / w);
+                    plane.height(cam.unproject_world(Vec2::new(u as f32, v as f32), g.depth_m.data[i])) > 0.05
+                })
+                .count()
+        };
+        let before = lumps(&f);
+        let mut plain = f.clone();
+        snap_to_ground(&mut plain, &missing, &cam, &plane, &GroundSnapConfig::new(1.0, 40.0));
+        let mut flat = f.clone();
+        let cfg = GroundSnapConfig { flatten_below_m: 0.3, ..GroundSnapConfig::new(1.0, 40.0) };
+        snap_to_ground(&mut flat, &missing, &cam, &plane, &cfg);
+        assert!(before > 300, "{before} lump pixels");
+        assert!(lumps(&plain) * 4 > before, "the up-facing test alone took {} of {before}", before - lumps(&plain));
+        assert_eq!(lumps(&flat), 0);
+        let holes = |g: &RgbdFrame| g.depth_m.data.iter().filter(|d| **d <= 0.0).count();
+        assert_eq!(holes(&flat), holes(&f), "flattening filled a hole");
     }
 
     #[test]

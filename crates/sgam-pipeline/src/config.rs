@@ -76,6 +76,11 @@ pub struct RunConfig {
     /// plane are put on it, metres ([`GeneratorConfig::ground_snap_m`]); `None` = off.
     #[serde(default)]
     pub ground_snap_m: Option<f32>,
+    /// With the ground prior: invented pixels less than this above the plane go on it whatever
+    /// the surface around them, metres ([`GeneratorConfig::ground_flatten_m`]); runs written
+    /// before it existed read as 0 (off).
+    #[serde(default)]
+    pub ground_flatten_m: f32,
     /// Invented flying pixels are given to a surface ([`GeneratorConfig::snap_flying_pixels`]);
     /// runs written before it existed read as off.
     #[serde(default)]
@@ -100,6 +105,7 @@ impl RunConfig {
             source_radius_m: self.source_radius_m,
             no_map: self.no_map,
             ground_snap_m: self.ground_snap_m,
+            ground_flatten_m: self.ground_flatten_m,
             snap_flying_pixels: self.snap_flying_pixels,
             carve_free_space: self.carve_free_space,
             ..clevr_generator_config(self.run_seed)

@@ -32,6 +32,9 @@ pub struct GeneratorConfig {
     /// seed frame's ground plane (or below it) are put back on the plane
     /// ([`sgam_core::ground::snap_to_ground`]). `None` = the refiner's depth as it is.
     pub ground_snap_m: Option<f32>,
+    /// With the ground prior: invented pixels less than this above the plane go on it whatever
+    /// the surface around them ([`GroundSnapConfig::flatten_below_m`]); 0 = off.
+    pub ground_flatten_m: f32,
     /// Invented pixels that hang between two surfaces (a decoder's depth ramp at a silhouette)
     /// are given to the nearer surface or to the ground behind, before the ground prior
     /// ([`sgam_core::edges::snap_flying_pixels`]). Off = the refiner's depth as it is.
@@ -64,6 +67,7 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         no_map: false,
         seed,
         ground_snap_m: None,
+        ground_flatten_m: 0.0,
         snap_flying_pixels: false,
         carve_free_space: false,
     }
@@ -238,7 +242,10 @@ impl<R: Refiner> WorldGenerator<R> {
         }
         if let Some(tolerance_m) = self.config.ground_snap_m {
             if let Some(plane) = self.ground_plane()? {
-                let cfg = GroundSnapConfig::new(tolerance_m, self.config.tsdf.depth_max_m);
+                let cfg = GroundSnapConfig {
+                    flatten_below_m: self.config.ground_flatten_m,
+                    ..GroundSnapConfig::new(tolerance_m, self.config.tsdf.depth_max_m)
+                };
                 snap_to_ground(&mut frame, &guidance.missing, camera, &plane, &cfg);
             }
         }

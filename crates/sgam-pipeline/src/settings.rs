@@ -42,6 +42,8 @@ pub const DEFAULT_TOP_K: usize = 0;
 /// carving 1.0 m keeps more objects than 1.2 m (0.69x against 0.61x of the true density on
 /// training seeds 11-18).
 pub const DEFAULT_GROUND_SNAP_M: f32 = 1.0;
+/// Default of `--ground-flatten`: off until measured on training seeds (docs/MODEL.md, session 17).
+pub const DEFAULT_GROUND_FLATTEN_M: f32 = 0.0;
 /// Default of `--flying-pixels`.
 pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
 /// Default of `--free-space`.
@@ -495,6 +497,12 @@ pub struct InventedPixelSettings {
     /// prior. Objects (higher than this) keep the refiner's depth.
     #[arg(long, default_value_t = DEFAULT_GROUND_SNAP_M)]
     pub ground_snap: f32,
+    /// With the ground prior, metres (0 = off): invented pixels less than this above the plane
+    /// go on it even where the surface around them does not face up. Where new ground meets
+    /// the ground already seen, the refiner's depth steps by a few centimetres; the tilted
+    /// seam fails --ground-snap's up-facing test and fuses into low ridges along the path.
+    #[arg(long, default_value_t = DEFAULT_GROUND_FLATTEN_M)]
+    pub ground_flatten: f32,
     /// Invented pixels that hang between two surfaces: where the refiner draws an object's
     /// silhouette against the ground behind as a depth ramp, the ramp's pixels float in the air
     /// and fuse into a sloped skirt around the object. `snap` gives each to the nearer surface
@@ -515,6 +523,7 @@ impl Default for InventedPixelSettings {
     fn default() -> Self {
         Self {
             ground_snap: DEFAULT_GROUND_SNAP_M,
+            ground_flatten: DEFAULT_GROUND_FLATTEN_M,
             flying_pixels: DEFAULT_FLYING_PIXELS,
             free_space: DEFAULT_FREE_SPACE,
         }
@@ -524,7 +533,8 @@ impl Default for InventedPixelSettings {
 impl InventedPixelSettings {
     /// Checks the ground prior's tolerance.
     pub fn validate(&self) -> Result<()> {
-        in_range("--ground-snap", self.ground_snap, 0.0..=10.0)
+        in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
+        in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap.max(0.0))
     }
 }
 
@@ -813,6 +823,7 @@ impl RunSettings {
             no_map: m.no_map,
             run_seed: self.sampling.seed,
             ground_snap_m: (invents && p.ground_snap > 0.0).then_some(p.ground_snap),
+            ground_flatten_m: if invents && p.ground_snap > 0.0 { p.ground_flatten } else { 0.0 },
             snap_flying_pixels: invents && p.flying_pixels == FlyingPixels::Snap,
             carve_free_space: invents && p.free_space == FreeSpace::Carve,
             outputs: self.outputs.settings(),
@@ -882,8 +893,12 @@ mod tests {
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
         // `keep` turns each filter off for the model
         let mut keep = RunSettings::clevr(7);
-        keep.invented =
-            InventedPixelSettings { ground_snap: 0.0, flying_pixels: FlyingPixels::Keep, free_space: FreeSpace::Keep };
+        keep.invented = InventedPixelSettings {
+            ground_snap: 0.0,
+            ground_flatten: 0.0,
+            flying_pixels: FlyingPixels::Keep,
+            free_space: FreeSpace::Keep,
+        };
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
     }

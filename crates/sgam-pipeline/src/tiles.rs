@@ -219,6 +219,12 @@ pub struct MapStreaming {
     pub evicted: usize,
     /// Tiles taken back so far (this invocation).
     pub restored: usize,
+    /// The map's largest memory after a step (this invocation), bytes.
+    pub peak_bytes: usize,
+    /// Tries to go under the bound that left the map above it, because everything it held was
+    /// within reach of the camera (this invocation): the bound is then too low for the view's
+    /// depth (`--depth-max`) and the world's density.
+    pub over_bound: usize,
 }
 
 impl MapStreaming {
@@ -227,7 +233,16 @@ impl MapStreaming {
     /// than a pose source looks around it (the greedy planner renders the next cells).
     pub fn new(max_mb: usize, margin_m: f32, tiles: TileStore) -> Self {
         let max_bytes = max_mb.saturating_mul(1 << 20);
-        Self { max_bytes, margin_m, tiles, next_trigger: max_bytes, evicted: 0, restored: 0 }
+        Self {
+            max_bytes,
+            margin_m,
+            tiles,
+            next_trigger: max_bytes,
+            evicted: 0,
+            restored: 0,
+            peak_bytes: 0,
+            over_bound: 0,
+        }
     }
 
     /// Tiles within this distance of a camera come back before it reads or writes the map.
@@ -270,7 +285,9 @@ impl MapStreaming {
     /// try waits until the map has grown by an eighth of the bound (each eviction rebuilds the
     /// map's index).
     pub fn let_go_far(&mut self, map: &mut TsdfMap, camera: &Camera) -> Result<()> {
-        if self.max_bytes == 0 || map.memory_bytes() <= self.next_trigger {
+        let bytes = map.memory_bytes();
+        self.peak_bytes = self.peak_bytes.max(bytes);
+        if self.max_bytes == 0 || bytes <= self.next_trigger {
             return Ok(());
         }
         let keep = self.keep_m(map, camera);
@@ -289,7 +306,11 @@ impl MapStreaming {
                 self.evicted += 1;
             }
         }
-        self.next_trigger = self.max_bytes.max(map.memory_bytes() + self.max_bytes / 8);
+        let after = map.memory_bytes();
+        if after > self.max_bytes {
+            self.over_bound += 1;
+        }
+        self.next_trigger = self.max_bytes.max(after + self.max_bytes / 8);
         Ok(())
     }
 }

@@ -36,6 +36,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
             single_mesh_max_triangles: 16_000_000,
         },
         ground_snap_m: None,
+        ground_flatten_m: 0.0,
         snap_flying_pixels: false,
         carve_free_space: false,
         max_map_mb: 0,

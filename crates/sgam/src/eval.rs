@@ -17,7 +17,7 @@ pub enum EvalCommand {
     /// Grow worlds with a refiner and with the oracle on held-out seeds along the same
     /// trajectory and compare them: objects, footprints, colour, ground roughness, the paper's
     /// scene metrics and KID.
-    World(crate::eval_world::WorldArgs),
+    World(Box<crate::eval_world::WorldArgs>),
     /// The baselines table: the bundled model (argmin and sampled), the null stand-in, the
     /// no-map and no-refine ablations and the oracle through `eval world` and `eval one-step`,
     /// as Markdown, plus the overview pictures side by side.

@@ -49,8 +49,9 @@ pub fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, r
                 dir.display()
             );
         }
-        // the whole resolved run, but for the model file (the label names its weights) and what
-        // was written besides the frames: a new field of the run is compared without a change here
+        // the whole resolved run, but for the model file (the label names its weights), what
+        // was written besides the frames, and the bound on the map's memory (the frames are the
+        // same with any bound): a new field of the run is compared without a change here
         let comparable = |r: &sgam_pipeline::RunConfig| sgam_pipeline::RunConfig {
             refiner: match &r.refiner {
                 sgam_pipeline::RefinerSpec::Model { options, bank, .. } => {
@@ -59,6 +60,7 @@ pub fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, r
                 other => other.clone(),
             },
             outputs: want.outputs,
+            max_map_mb: want.max_map_mb,
             ..r.clone()
         };
         let same = run["steps"].as_u64() == Some(steps as u64)

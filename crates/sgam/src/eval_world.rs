@@ -159,6 +159,9 @@ impl WorldArgs {
         if kind != RefinerKind::Oracle {
             if p.ground_snap > 0.0 {
                 label.push_str(&format!("-g{}", p.ground_snap));
+                if p.ground_flatten > 0.0 {
+                    label.push_str(&format!("-flat{}", p.ground_flatten));
+                }
             }
             if p.flying_pixels != DEFAULT_FLYING_PIXELS {
                 label.push_str(&format!("-f{:?}", p.flying_pixels).to_lowercase());
@@ -365,6 +368,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "trajectory": format!("{:?}", args.trajectory()).to_lowercase(),
         "temperature": args.sampling.temperature,
         "ground_snap_m": args.invented.ground_snap,
+        "ground_flatten_m": args.invented.ground_flatten,
         "flying_pixels": args.invented.flying_pixels,
         "free_space": args.invented.free_space,
         "top_k": args.sampling.top_k,

@@ -259,6 +259,8 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
                  "tiles_disk_bytes": run.streaming.tiles.disk_bytes(),
                  "tile_blocks": run.streaming.tiles.entries().map(|e| e.blocks as u64).sum::<u64>(),
                  "tiles_written_this_invocation": run.streaming.evicted,
+                 "peak_bytes_this_invocation": run.streaming.peak_bytes,
+                 "over_bound_this_invocation": run.streaming.over_bound,
                  "tiles_taken_back_this_invocation": run.streaming.restored },
         "step_ms": timings.iter().map(|t| (t.total_ms * 1000.0).round() / 1000.0).collect::<Vec<_>>(),
         // flatness over a long run at a glance: the median step of each 1000 steps (the last
@@ -329,6 +331,16 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
             format!("; large mesh: sgam view {} --serve", dir.display())
         }
     );
+    if run.streaming.over_bound > 0 {
+        eprintln!(
+            "warning: the map stayed above --max-map-mb {} {} times (peak {:.0} MB): what a step can see (--depth-max {} m) \
+             held more than that; raise --max-map-mb or lower --depth-max",
+            config.max_map_mb,
+            run.streaming.over_bound,
+            run.streaming.peak_bytes as f64 / 1e6,
+            config.map.depth_max_m
+        );
+    }
     eprintln!("  overview:    {}  (and strip.png: 6 frames)", dir.join("overview.png").display());
     eprintln!("  poses:       {}  (nerfstudio / instant-ngp)", dir.join("transforms.json").display());
     eprintln!("  frames:      {}/rgb, {}/depth", dir.display(), dir.display());

@@ -336,11 +336,18 @@ fn a_run_bounded_by_max_map_mb_writes_its_world_as_tiles_and_as_one_mesh() {
     let run = tmp.path().join("run");
     let run_s = run.to_str().unwrap();
     #[rustfmt::skip]
-    ok(&["generate", "--out", run_s, "--refiner", "null", "--res", "32", "--voxel-size", "0.02", "--depth-max", "15",
-         "--trajectory", "boustrophedon", "--grid", "82", "--steps", "100", "--max-map-mb", "16",
+    let stderr = ok(&["generate", "--out", run_s, "--refiner", "null", "--res", "32", "--voxel-size", "0.02",
+         "--depth-max", "15", "--trajectory", "boustrophedon", "--grid", "82", "--steps", "100", "--max-map-mb", "16",
          "--snapshot-every", "1000", "--no-video"]);
     let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
     let map = &summary["map"];
+    // 16 MB is less than what a step sees within 15 m: the run says so, and how far over it went
+    let peak = map["peak_bytes_this_invocation"].as_u64().unwrap();
+    assert!(map["over_bound_this_invocation"].as_u64().unwrap() > 0 && peak > 16 << 20, "{map}");
+    assert!(
+        stderr.contains("warning: the map stayed above --max-map-mb 16") && stderr.contains("--depth-max"),
+        "{stderr}"
+    );
     let on_disk = map["tiles_on_disk"].as_u64().unwrap();
     assert!(on_disk > 0 && map["tiles_taken_back_this_invocation"].as_u64().unwrap() > 0, "{map}");
     assert_eq!(std::fs::read_dir(run.join("tiles")).unwrap().count() as u64, on_disk);
