@@ -38,7 +38,7 @@ pub struct OutputSettings {
     #[serde(default)]
     pub guidance_png: bool,
     /// A tiled world is also written as one mesh when it has at most this many triangles
-    /// (runs written before it existed read as the default, 16 million).
+    /// (runs written before it existed read as the default, 4 million).
     #[serde(default = "default_single_mesh_max_triangles")]
     pub single_mesh_max_triangles: u64,
 }

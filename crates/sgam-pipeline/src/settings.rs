@@ -42,8 +42,12 @@ pub const DEFAULT_TOP_K: usize = 0;
 /// carving 1.0 m keeps more objects than 1.2 m (0.69x against 0.61x of the true density on
 /// training seeds 11-18).
 pub const DEFAULT_GROUND_SNAP_M: f32 = 1.0;
-/// Default of `--ground-flatten`: off until measured on training seeds (docs/MODEL.md, session 17).
-pub const DEFAULT_GROUND_FLATTEN_M: f32 = 0.0;
+/// Default of `--ground-flatten`, metres: below the metric's object height (0.25 m above the
+/// ground counts as raised) and far below the shortest object (1.4 m). On training seeds 11-12
+/// (400 steps, the bank) it took the zig-zag's ground from 1.71x to 1.34x the true world's
+/// roughness and the spiral's from 2.25x to 1.58x; 0.15 m did less (1.52x, 2.18x)
+/// (docs/MODEL.md, session 17).
+pub const DEFAULT_GROUND_FLATTEN_M: f32 = 0.3;
 /// Default of `--flying-pixels`.
 pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
 /// Default of `--free-space`.
@@ -648,8 +652,10 @@ pub struct OutputArgs {
     pub single_mesh_max_mtri: f32,
 }
 
-/// Default of `--single-mesh-max-mtri`: 16 million triangles (about 0.5 GB to build).
-pub const DEFAULT_SINGLE_MESH_MAX_MTRI: f32 = 16.0;
+/// Default of `--single-mesh-max-mtri`: 4 million triangles (about 0.25 GB to build and write).
+/// A 100,000-step world (15.3 million) built as one mesh took its run's peak memory from about
+/// 0.53 GB to 1.38 GB; a 10,000-step one (2.0 million) stays one mesh.
+pub const DEFAULT_SINGLE_MESH_MAX_MTRI: f32 = 4.0;
 
 impl Default for OutputArgs {
     fn default() -> Self {

@@ -33,7 +33,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
             mp4: false,
             orbit_video: false,
             guidance_png: false,
-            single_mesh_max_triangles: 16_000_000,
+            single_mesh_max_triangles: 4_000_000,
         },
         ground_snap_m: None,
         ground_flatten_m: 0.0,

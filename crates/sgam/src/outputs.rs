@@ -184,6 +184,21 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
         sgam_io::write_mesh(&dir.join("mesh.ply"), &mesh)?;
         sgam_io::write_mesh(&dir.join("mesh.glb"), &mesh)?;
     }
+    // a world too large for one mesh, or whose map is in tiles, leaves no stale one behind (a
+    // resumed run rewrites its outputs)
+    let stale: &[&str] = match (single, tiled.is_some()) {
+        (true, false) => &[],
+        (true, true) => &["map.bin"],
+        (false, _) => &["mesh.ply", "mesh.glb", "map.bin"],
+    };
+    for name in stale {
+        match std::fs::remove_file(dir.join(name)) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                return Err(anyhow::Error::new(e).context(format!("{}: cannot remove", dir.join(name).display())))
+            }
+            _ => {}
+        }
+    }
     if tiled.is_none() {
         sgam_pipeline::save_map(&dir.join("map.bin"), &generator.map)?;
     }

@@ -17,11 +17,12 @@ const WORLD_STEPS: usize = 120;
 /// Bounds, measured with the pinned weights on this world (release build, 2026-12-03: 9
 /// objects, median solidity 0.71, ground 42.7 mm against the oracle's 31.1 = 1.37x, p90
 /// footprint 5.7 m2 against the oracle's 2.7) and set with a margin for other builds' rounding.
-/// The pinned model grows no compact object here (compact share 0.0 against the oracle's):
-/// issue 26 asks for compact ones, and a model that grows them raises this test's bound.
+/// With `--ground-flatten 0.3` (the default since session 17; 2026-12-03): 11 objects, median
+/// solidity 0.83, compact share 0.45, ground 31.0 mm = 1.00x, p90 8.9 m2; the ground bound
+/// went from 2.0x to 1.5x.
 const MIN_OBJECTS: usize = 5;
 const MIN_MEDIAN_SOLIDITY: f64 = 0.6;
-const MAX_GROUND_RATIO: f64 = 2.0;
+const MAX_GROUND_RATIO: f64 = 1.5;
 const MAX_P90_AREA_M2: f64 = 12.0;
 
 #[test]
@@ -78,11 +79,14 @@ const BANK_CRC32: u32 = 0x3212_43bb;
 /// Bounds of the same world grown with the bundled code bank (`--bank bundled`), measured
 /// 2026-12-03 in a release build: 11 objects, median solidity 0.82, compact share 0.36 (the
 /// oracle's 0.47), ground 50.3 mm against the oracle's 31.1 (1.61x), p90 footprint 5.2 m2; set
-/// with a margin. Unlike the sampled world above, compact objects are required.
+/// with a margin. Unlike the sampled world above, compact objects are required. With
+/// `--ground-flatten 0.3` (the default since session 17): 8 objects, median solidity 0.79,
+/// compact share 0.25, ground 28.6 mm = 0.92x, p90 7.6 m2; the ground bound went from 2.2x to
+/// 1.4x (the issue's bar).
 const BANK_MIN_OBJECTS: usize = 6;
 const BANK_MIN_MEDIAN_SOLIDITY: f64 = 0.72;
 const BANK_MIN_COMPACT_SHARE: f64 = 0.15;
-const BANK_MAX_GROUND_RATIO: f64 = 2.2;
+const BANK_MAX_GROUND_RATIO: f64 = 1.4;
 
 #[test]
 fn the_bundled_bank_is_pinned_and_fits_the_bundled_model() {
