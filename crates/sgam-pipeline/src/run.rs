@@ -97,6 +97,10 @@ pub fn generate(
     };
     let tiles = TileStore::open(dir, gconfig.tsdf, &tile_index)?;
     let mut streaming = MapStreaming::new(config.max_map_mb, config.stream_margin_m(), tiles);
+    let mut map = map;
+    if resumed {
+        streaming.mend_borders(&mut map)?;
+    }
     let mut generator = WorldGenerator::new(map, keyframes, refiner, gconfig);
     generator.keep_guidance(config.outputs.guidance_png);
     // the map's state on disk: its resident part in the snapshot, the rest in the tiles it

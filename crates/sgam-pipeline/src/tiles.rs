@@ -280,6 +280,37 @@ impl MapStreaming {
         Ok(())
     }
 
+    /// After a resume: takes back the tiles next to a resident super-block on its `+x`/`+y`/`+z`
+    /// sides. The map file holds no meshes, so a loaded map meshes every block anew, and a
+    /// block whose upper neighbours were in tiles is meshed without them; taking them back
+    /// re-meshes it as the uninterrupted run has it (tiles far away go again at the next
+    /// eviction; the frames do not change, as these blocks lie beyond every step's reach).
+    pub fn mend_borders(&mut self, map: &mut TsdfMap) -> Result<()> {
+        if self.tiles.is_empty() {
+            return Ok(());
+        }
+        let resident: std::collections::HashSet<[i32; 3]> =
+            map.super_block_keys().into_iter().map(|k| k.to_array()).collect();
+        let next_to: Vec<[i32; 3]> = self
+            .tiles
+            .entries()
+            .map(|e| e.key)
+            .filter(|&[x, y, z]| {
+                (0..8).any(|o| o != 0 && resident.contains(&[x - (o & 1), y - (o >> 1 & 1), z - (o >> 2 & 1)]))
+            })
+            .collect();
+        let mut blocks = Vec::new();
+        for k in next_to {
+            blocks.extend(self.tiles.take(k)?.unwrap_or_default());
+            self.restored += 1;
+        }
+        if !blocks.is_empty() {
+            map.restore_blocks(blocks)?;
+            map.update_mesh();
+        }
+        Ok(())
+    }
+
     /// When the map holds more than the bound, sends every super-block farther than
     /// [`Self::keep_m`] from `camera` to disk. If what stays is still over the bound, the next
     /// try waits until the map has grown by an eighth of the bound (each eviction rebuilds the

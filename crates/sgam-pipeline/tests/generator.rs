@@ -450,6 +450,21 @@ fn a_run_whose_map_goes_to_tiles_grows_the_same_frames_and_resumes_from_them() {
     on_disk.sort();
     assert!(!named.is_empty());
     assert_eq!(named, on_disk);
+    // stopped near the end instead, where the camera does not go back to the tiles next to
+    // what stays in memory: the loaded map meshes its blocks without those tiles, and only
+    // taking them back after the resume gives the world the uninterrupted run's mesh
+    let c = tmp.path().join("late");
+    drop(generate(&c, &tiled_config, None, None, Some(150), &mut Quiet).unwrap());
+    let (state, map) = read_snapshot(&c).unwrap();
+    let late = generate(&c, &tiled_config, Some(Resume { state, map }), None, None, &mut Quiet).unwrap();
+    assert!(frame_files(&a) == frame_files(&c), "frames differ after a late resume");
+    let in_tiles: u64 = late.streaming.tiles.entries().map(|e| e.triangles).sum();
+    let (mut kept_map, mut late_map) = (kept.generator.map, late.generator.map);
+    assert_eq!(
+        late_map.extract_mesh().triangles.len() as u64 + in_tiles,
+        kept_map.extract_mesh().triangles.len() as u64,
+        "the world's triangles (in memory and in tiles) differ from the uninterrupted run's"
+    );
 }
 
 #[test]
