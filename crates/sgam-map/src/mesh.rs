@@ -212,6 +212,19 @@ impl TsdfMap {
     /// [`TsdfConfig::weight_threshold`](crate::TsdfConfig::weight_threshold)). Runs in parallel
     /// over blocks; returns the number of blocks re-meshed.
     pub fn update_mesh(&mut self) -> usize {
+        self.remesh(true)
+    }
+
+    /// Re-meshes exactly the dirty blocks, not their lower neighbours: for a map loaded from a
+    /// file (every block dirty, no mesh) whose neighbours away in tiles were taken back first,
+    /// so each loaded block is meshed with them and the blocks taken back keep their meshes.
+    /// Returns the number of blocks re-meshed.
+    pub fn remesh_dirty_only(&mut self) -> usize {
+        self.remesh(false)
+    }
+
+    /// Re-meshes the dirty blocks and, with `spread`, their lower neighbours.
+    fn remesh(&mut self, spread: bool) -> usize {
         let weight_threshold = self.config.weight_threshold;
         if self.dirty.is_empty() {
             return 0;
@@ -219,7 +232,7 @@ impl TsdfMap {
         // The dirty blocks and their lower neighbours, each once (`is_dirty` marks what is
         // queued; no sort).
         let mut todo = std::mem::take(&mut self.dirty);
-        for i in 0..todo.len() {
+        for i in 0..if spread { todo.len() } else { 0 } {
             for &n in &self.layer.lower(todo[i])[1..] {
                 if n != NONE && !self.is_dirty[n as usize] {
                     self.is_dirty[n as usize] = true;

@@ -395,12 +395,13 @@ impl TsdfMap {
         weld_block_meshes(ids.into_iter().map(|id| (self.layer.key(id), &self.meshes[id as usize])), |_| true)
     }
 
-    /// Takes back blocks let go of by [`TsdfMap::evict_super_blocks`], with their meshes (not
-    /// re-meshed) and allocation order. The resident blocks whose meshes read them (their lower
-    /// neighbours) are re-meshed on the next [`TsdfMap::update_mesh`]: in a map that kept them
-    /// all along that gives the meshes they had, and in a map loaded from a file while they
-    /// were away it mends meshes that were made without them. Refuses a block that is
-    /// resident, and an order not below the map's next one (not from this map).
+    /// Takes back blocks let go of by [`TsdfMap::evict_super_blocks`], with their meshes and
+    /// allocation order. Nothing is re-meshed: the resident blocks whose meshes read them kept
+    /// the meshes they had (re-meshing one now could lose its cells towards another neighbour
+    /// still away). A map loaded from a file while they were away meshes its blocks anew:
+    /// [`TsdfMap::remesh_dirty_only`] after taking the neighbours back gives them their
+    /// meshes. Refuses a block that is resident, and an order not below the map's next one
+    /// (not from this map).
     pub fn restore_blocks(&mut self, mut blocks: Vec<EvictedBlock>) -> Result<(), MapError> {
         blocks.sort_unstable_by_key(|b| b.order);
         for b in &blocks {
@@ -415,25 +416,14 @@ impl TsdfMap {
             }
         }
         let next_order = self.next_order;
-        let first_new = self.layer.len() as u32;
-        let mut ids = Vec::with_capacity(blocks.len());
         for b in blocks {
             let (id, _) = self.allocate(b.key);
             *self.layer.block_mut(id) = b.block;
             self.meshes[id as usize] = b.mesh;
             self.order[id as usize] = b.order;
             self.refresh_sign_flags(id);
-            ids.push(id);
         }
         self.next_order = next_order;
-        for id in ids {
-            let lower = self.layer.lower(id);
-            for &l in &lower[1..] {
-                if l != NONE && l < first_new {
-                    self.mark_dirty(l);
-                }
-            }
-        }
         Ok(())
     }
 }

@@ -232,3 +232,37 @@ fn a_map_file_keeps_allocation_order_and_a_version_1_file_still_loads() {
         m.block_keys().into_iter().filter(|k| sgam_map::super_block_of(*k) != far).collect::<Vec<_>>()
     );
 }
+
+#[test]
+fn taking_one_neighbour_back_leaves_the_meshes_that_read_another_still_away() {
+    // a block whose +x neighbour comes back while its +y neighbour stays away keeps the mesh
+    // it had: re-meshing it then would lose its cells towards +y
+    let config = TsdfConfig { voxel_size_m: 0.1, trunc_voxels: 3.0, depth_max_m: 8.0, ..TsdfConfig::default() };
+    let cams = path();
+    let mut kept = TsdfMap::new(config);
+    for c in &cams[..8] {
+        kept.integrate(&render_analytic(&corridor(), c), c);
+    }
+    kept.update_mesh();
+    let supers = kept.super_block_keys();
+    let has = |k: IVec3| supers.contains(&k);
+    let s = *supers
+        .iter()
+        .find(|&&k| has(k + IVec3::X) && has(k + IVec3::Y))
+        .expect("a super-block with +x and +y neighbours");
+    let mut m = kept.clone();
+    let away = m.evict_super_blocks(&[s + IVec3::X, s + IVec3::Y]);
+    let (back, still): (Vec<EvictedBlock>, Vec<EvictedBlock>) =
+        away.into_iter().partition(|b| sgam_map::super_block_of(b.key) == s + IVec3::X);
+    assert!(!back.is_empty() && !still.is_empty());
+    m.restore_blocks(back).unwrap();
+    m.update_mesh();
+    let (a, b) = (kept.super_block_mesh(s), m.super_block_mesh(s));
+    assert!(a.triangles.len() > 100);
+    assert!(
+        a.positions == b.positions && a.triangles == b.triangles,
+        "{} against {} triangles",
+        b.triangles.len(),
+        a.triangles.len()
+    );
+}

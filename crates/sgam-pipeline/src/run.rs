@@ -96,7 +96,9 @@ pub fn generate(
         None => (TsdfMap::new(gconfig.tsdf), Vec::new(), Default::default()),
     };
     let tiles = TileStore::open(dir, gconfig.tsdf, &tile_index)?;
-    let mut streaming = MapStreaming::new(config.max_map_mb, config.stream_margin_m(), tiles);
+    // the no-map ablation rebuilds its map every step: nothing to bound
+    let max_map_mb = if config.no_map { 0 } else { config.max_map_mb };
+    let mut streaming = MapStreaming::new(max_map_mb, config.stream_margin_m(), tiles);
     let mut map = map;
     if resumed {
         streaming.mend_borders(&mut map)?;

@@ -281,10 +281,10 @@ impl MapStreaming {
     }
 
     /// After a resume: takes back the tiles next to a resident super-block on its `+x`/`+y`/`+z`
-    /// sides. The map file holds no meshes, so a loaded map meshes every block anew, and a
-    /// block whose upper neighbours were in tiles is meshed without them; taking them back
-    /// re-meshes it as the uninterrupted run has it (tiles far away go again at the next
-    /// eviction; the frames do not change, as these blocks lie beyond every step's reach).
+    /// sides, then meshes the loaded blocks (all without a mesh) with them. The map file holds
+    /// no meshes: without this a block whose upper neighbours were in tiles would be meshed
+    /// without them (tiles far away go again at the next eviction; the frames do not change,
+    /// as these blocks lie beyond every step's reach).
     pub fn mend_borders(&mut self, map: &mut TsdfMap) -> Result<()> {
         if self.tiles.is_empty() {
             return Ok(());
@@ -306,7 +306,9 @@ impl MapStreaming {
         }
         if !blocks.is_empty() {
             map.restore_blocks(blocks)?;
-            map.update_mesh();
+            // the loaded blocks (all dirty) with their neighbours back; the blocks taken back
+            // keep their meshes (their own neighbours may still be away)
+            map.remesh_dirty_only();
         }
         Ok(())
     }

@@ -200,6 +200,11 @@ pub fn finish_outputs(config: &RunConfig, dir: &Path, run: &mut Generated) -> Re
         }
     }
     if tiled.is_none() {
+        // an earlier finish of this run may have left a tiled world's files
+        let old = dir.join(crate::tiled::MESH_TILES_DIR);
+        if old.is_dir() {
+            std::fs::remove_dir_all(&old).with_context(|| format!("{}: cannot remove", old.display()))?;
+        }
         sgam_pipeline::save_map(&dir.join("map.bin"), &generator.map)?;
     }
     let cams = generator.keyframes.cameras();
