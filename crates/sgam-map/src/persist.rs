@@ -33,7 +33,7 @@ const BLOCK_BYTES_V1: usize = 12 + BLOCK_VOXELS * 20;
 const BLOCK_BYTES: usize = BLOCK_BYTES_V1 + 8;
 /// Largest block-key coordinate a loaded map may hold: voxel indices (`8 key`) and neighbour
 /// keys stay far from `i32` overflow (2^28 blocks is ~10^7 km at 5 cm voxels).
-const MAX_BLOCK_KEY: i32 = 1 << 28;
+pub(crate) const MAX_BLOCK_KEY: i32 = 1 << 28;
 
 impl TsdfMap {
     /// Writes the map in the versioned binary format described in this module (blocks sorted
@@ -138,7 +138,7 @@ impl TsdfMap {
         let mut map = TsdfMap::new(config);
         for i in 0..count {
             let key = IVec3::new(cur.i32()?, cur.i32()?, cur.i32()?);
-            if key.abs().max_element() > MAX_BLOCK_KEY {
+            if key.to_array().iter().any(|v| v.unsigned_abs() > MAX_BLOCK_KEY as u32) {
                 return Err(MapError::InvalidContent(format!("block key {key} outside +-{MAX_BLOCK_KEY}")));
             }
             // version 1: allocation order is key order

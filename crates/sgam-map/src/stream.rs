@@ -186,6 +186,9 @@ pub fn read_tile(bytes: &[u8], config: &TsdfConfig) -> Result<(IVec3, Vec<Evicte
     let mut out = Vec::with_capacity(count);
     for _ in 0..count {
         let key = IVec3::new(cur.i32()?, cur.i32()?, cur.i32()?);
+        if key.to_array().iter().any(|v| v.unsigned_abs() > crate::persist::MAX_BLOCK_KEY as u32) {
+            return Err(bad(format!("block key {key} outside +-{}", crate::persist::MAX_BLOCK_KEY)));
+        }
         if super_block_of(key) != skey || !keys.insert(key) {
             return Err(bad(format!("block {key} is outside super-block {skey} or given twice")));
         }
@@ -377,7 +380,7 @@ impl TsdfMap {
     /// they came from. Refuses a key given twice.
     pub fn from_evicted(config: TsdfConfig, blocks: Vec<EvictedBlock>) -> Result<TsdfMap, MapError> {
         let mut map = TsdfMap::new(config);
-        map.next_order = blocks.iter().map(|b| b.order + 1).max().unwrap_or(0);
+        map.next_order = blocks.iter().map(|b| b.order.saturating_add(1)).max().unwrap_or(0);
         map.restore_blocks(blocks)?;
         Ok(map)
     }

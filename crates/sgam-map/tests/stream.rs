@@ -266,3 +266,31 @@ fn taking_one_neighbour_back_leaves_the_meshes_that_read_another_still_away() {
         a.triangles.len()
     );
 }
+
+#[test]
+fn a_tile_with_a_valid_checksum_and_a_key_beyond_the_map_is_refused() {
+    // crafted, not damaged: the CRC matches, the key is far outside any map (i32::MIN too)
+    let config = TsdfConfig { voxel_size_m: 0.1, trunc_voxels: 3.0, depth_max_m: 8.0, ..TsdfConfig::default() };
+    for far in [i32::MIN, i32::MAX, 1 << 29] {
+        let key = IVec3::new(far, 0, 0);
+        let sk = sgam_map::super_block_of(key);
+        let mut bytes = Vec::new();
+        bytes.extend_from_slice(b"SGAMTILE");
+        bytes.extend_from_slice(&1u32.to_le_bytes());
+        bytes.extend_from_slice(&0.1f32.to_le_bytes());
+        for v in sk.to_array() {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        bytes.extend_from_slice(&1u32.to_le_bytes());
+        for v in key.to_array() {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        bytes.extend_from_slice(&0u64.to_le_bytes()); // order
+        bytes.extend_from_slice(&[0u8; 64]); // no voxel stored
+        bytes.extend_from_slice(&[0u8; 9]); // no mesh
+        let crc = crc32fast::hash(&bytes);
+        bytes.extend_from_slice(&crc.to_le_bytes());
+        let e = read_tile(&bytes, &config).unwrap_err().to_string();
+        assert!(e.contains("outside"), "{far}: {e}");
+    }
+}

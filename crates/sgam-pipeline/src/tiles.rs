@@ -296,7 +296,10 @@ impl MapStreaming {
             .entries()
             .map(|e| e.key)
             .filter(|&[x, y, z]| {
-                (0..8).any(|o| o != 0 && resident.contains(&[x - (o & 1), y - (o >> 1 & 1), z - (o >> 2 & 1)]))
+                (1..8).any(|o| {
+                    let below = [x.wrapping_sub(o & 1), y.wrapping_sub(o >> 1 & 1), z.wrapping_sub(o >> 2 & 1)];
+                    resident.contains(&below)
+                })
             })
             .collect();
         let mut blocks = Vec::new();

@@ -266,7 +266,11 @@
   }
   function dropCell(cell) {
     state.tiles.group.remove(cell.fine);
-    cell.fine.traverse((o) => { if (o.isMesh) o.geometry.dispose(); });
+    cell.fine.traverse((o) => {
+      if (!o.isMesh) return;
+      o.geometry.dispose();
+      o.material.dispose();
+    });
     cell.fine = null;
     showCoarse(cell, true);
     document.body.dataset.sgamFineCells = String(state.tiles.group.children.length);
