@@ -23,6 +23,7 @@ mod image;
 mod mesh;
 mod refiner;
 mod rigid;
+pub mod solid;
 pub mod trajectory;
 
 pub use camera::{Camera, Intrinsics};

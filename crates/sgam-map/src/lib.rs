@@ -33,6 +33,7 @@ mod mc_table;
 mod mesh;
 mod persist;
 mod render;
+mod solid;
 mod stream;
 mod warp;
 

@@ -89,6 +89,10 @@ pub struct RunConfig {
     /// ([`GeneratorConfig::carve_free_space`]); runs written before it existed read as off.
     #[serde(default)]
     pub carve_free_space: bool,
+    /// Invented objects are fused as solids up to this deep, metres
+    /// ([`GeneratorConfig::solid_max_m`]); 0 = off (runs written before it existed read as 0).
+    #[serde(default)]
+    pub solid_max_m: f32,
     /// Bound on the map's memory, MB: beyond it, far super-blocks go to tiles on disk
     /// ([`crate::tiles`]). 0 = no bound (runs written before it existed read as 0).
     #[serde(default)]
@@ -108,6 +112,7 @@ impl RunConfig {
             ground_flatten_m: self.ground_flatten_m,
             snap_flying_pixels: self.snap_flying_pixels,
             carve_free_space: self.carve_free_space,
+            solid_max_m: self.solid_max_m,
             ..clevr_generator_config(self.run_seed)
         }
     }

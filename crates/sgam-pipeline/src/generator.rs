@@ -6,6 +6,7 @@ use serde::{Deserialize, Serialize};
 use sgam_core::edges::{snap_flying_pixels, FlyingPixelConfig};
 use sgam_core::freespace::{carve_invented, FreeSpaceConfig};
 use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
+use sgam_core::solid::{object_thickness, SolidConfig};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
@@ -43,6 +44,11 @@ pub struct GeneratorConfig {
     /// store) go to the ground plane behind them, or are dropped, after the flying pixels and
     /// before the ground prior ([`sgam_core::freespace::carve_invented`]).
     pub carve_free_space: bool,
+    /// Invented object pixels (at least 10 cm above the seed frame's ground plane) are fused
+    /// as solids reaching a back as far behind the object's front as the object is wide, from
+    /// twice the truncation up to this many metres ([`sgam_core::solid::object_thickness`], [`TsdfMap::integrate_behind`]);
+    /// 0 = off (a one-view shell as thick as the truncation band).
+    pub solid_max_m: f32,
 }
 
 /// The loop's parameters for the CLEVR-Infinite world: the [`crate::seeds::CLEVR`] preset's voxels,
@@ -70,6 +76,7 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         ground_flatten_m: 0.0,
         snap_flying_pixels: false,
         carve_free_space: false,
+        solid_max_m: 0.0,
     }
 }
 
@@ -252,6 +259,13 @@ impl<R: Refiner> WorldGenerator<R> {
         timings.refine_ms = t.lap();
         // fuse the new frame into the map, once
         self.map.integrate(&frame, camera);
+        if self.config.solid_max_m > 0.0 {
+            if let Some(plane) = self.ground_plane()? {
+                let cfg = SolidConfig::new(2.0 * self.config.tsdf.trunc_m(), self.config.solid_max_m);
+                let thickness = object_thickness(&frame, &guidance.missing, camera, &plane, &cfg);
+                self.map.integrate_behind(&frame, camera, &thickness, Some(&plane));
+            }
+        }
         timings.integrate_ms = t.lap();
         // re-mesh only the blocks the frame changed
         self.map.update_mesh();

@@ -48,6 +48,8 @@ pub const DEFAULT_GROUND_SNAP_M: f32 = 1.0;
 /// roughness and the spiral's from 2.25x to 1.58x; 0.15 m did less (1.52x, 2.18x)
 /// (docs/MODEL.md, session 17).
 pub const DEFAULT_GROUND_FLATTEN_M: f32 = 0.3;
+/// Default of `--solid-objects`, metres (0 = off).
+pub const DEFAULT_SOLID_OBJECTS_M: f32 = 0.0;
 /// Default of `--flying-pixels`.
 pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
 /// Default of `--free-space`.
@@ -521,6 +523,14 @@ pub struct InventedPixelSettings {
     /// saw through on the ground plane behind it (or drops it); `keep` fuses them as drawn.
     #[arg(long, value_enum, default_value_t = DEFAULT_FREE_SPACE)]
     pub free_space: FreeSpace,
+    /// Invented objects fused as solids, up to this deep, metres (0 = off). A completed frame
+    /// shows one side of an object; fused alone it is a shell as thick as the truncation band,
+    /// which later views see edge-on as a sheet. Invented pixels at least 10 cm above the
+    /// ground plane are grouped into objects, and each object is filled behind its surface up
+    /// to a back as far behind its front as it is wide (at most this), in space no view has
+    /// seen yet, never under the ground. Needs the ground prior's plane.
+    #[arg(long, default_value_t = DEFAULT_SOLID_OBJECTS_M)]
+    pub solid_objects: f32,
 }
 
 impl Default for InventedPixelSettings {
@@ -530,6 +540,7 @@ impl Default for InventedPixelSettings {
             ground_flatten: DEFAULT_GROUND_FLATTEN_M,
             flying_pixels: DEFAULT_FLYING_PIXELS,
             free_space: DEFAULT_FREE_SPACE,
+            solid_objects: DEFAULT_SOLID_OBJECTS_M,
         }
     }
 }
@@ -538,7 +549,8 @@ impl InventedPixelSettings {
     /// Checks the ground prior's tolerance.
     pub fn validate(&self) -> Result<()> {
         in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
-        in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap.max(0.0))
+        in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap.max(0.0))?;
+        in_range("--solid-objects", self.solid_objects, 0.0..=10.0)
     }
 }
 
@@ -832,6 +844,7 @@ impl RunSettings {
             ground_flatten_m: if invents && p.ground_snap > 0.0 { p.ground_flatten } else { 0.0 },
             snap_flying_pixels: invents && p.flying_pixels == FlyingPixels::Snap,
             carve_free_space: invents && p.free_space == FreeSpace::Carve,
+            solid_max_m: if invents { p.solid_objects } else { 0.0 },
             outputs: self.outputs.settings(),
             max_map_mb: m.max_map_mb,
         })
@@ -887,6 +900,8 @@ mod tests {
         assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 5.0, 5));
         assert_eq!(c.map, crate::clevr_generator_config(0).tsdf, "generation and training share the map");
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (Some(1.0), true, true));
+        assert_eq!(c.solid_max_m, DEFAULT_SOLID_OBJECTS_M);
+        assert_eq!(c.generator_config().solid_max_m, DEFAULT_SOLID_OBJECTS_M);
         let RefinerSpec::Model { model: None, options, bank: BankSpec::Bundled } = c.refiner else {
             panic!("{:?}", c.refiner)
         };
@@ -895,8 +910,10 @@ mod tests {
         // the oracle's pixels are never changed, whatever the policy says
         let mut oracle = RunSettings::clevr(7);
         oracle.refiner = RefinerSettings::kind(RefinerKind::Oracle);
+        oracle.invented.solid_objects = 1.5;
         let c = oracle.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
+        assert_eq!(c.solid_max_m, 0.0, "the oracle's objects are the true world's");
         // `keep` turns each filter off for the model
         let mut keep = RunSettings::clevr(7);
         keep.invented = InventedPixelSettings {
@@ -904,6 +921,7 @@ mod tests {
             ground_flatten: 0.0,
             flying_pixels: FlyingPixels::Keep,
             free_space: FreeSpace::Keep,
+            solid_objects: 0.0,
         };
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
@@ -987,6 +1005,11 @@ mod tests {
         let mut s = RunSettings::default();
         s.path.trajectory_file = Some("poses.txt".into());
         assert!(err(s).contains("--trajectory-file"));
+        for bad in [-1.0, f32::NAN, 11.0] {
+            let mut s = RunSettings::default();
+            s.invented.solid_objects = bad;
+            assert!(err(s).contains("--solid-objects"), "{bad}");
+        }
         let mut s = RunSettings::default();
         s.seed.seed_template = Some("a".into());
         s.seed.seed_google_earth = Some("b".into());

@@ -170,6 +170,9 @@ impl WorldArgs {
             if p.free_space == FreeSpace::Carve {
                 label.push_str("-carve");
             }
+            if p.solid_objects > 0.0 {
+                label.push_str(&format!("-solid{}", p.solid_objects));
+            }
         }
         if self.map.no_map {
             label.push_str("-nomap");
@@ -371,6 +374,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "ground_flatten_m": args.invented.ground_flatten,
         "flying_pixels": args.invented.flying_pixels,
         "free_space": args.invented.free_space,
+        "solid_objects_m": args.invented.solid_objects,
         "top_k": args.sampling.top_k,
         "within_temperature": args.sampling.within_temperature,
         "generated": gp, "oracle": op,

@@ -1,0 +1,220 @@
+//! How deep an invented object is behind the surface the refiner drew.
+//!
+//! A completed frame gives one view's surface. Fused alone, an invented object is a shell as
+//! thick as the TSDF's truncation band (25 cm on CLEVR-Infinite); later views see it from the
+//! side as a thin sheet and keep it, because observed pixels are kept. The true world is fused
+//! from many views of each object and is solid. [`object_thickness`] gives every invented object
+//! pixel a depth behind its surface, up to a back as far behind the object's front as the object
+//! is wide (CLEVR's primitives are about as deep as wide), for the map's `integrate_behind`.
+
+use glam::Vec2;
+
+use crate::ground::GroundPlane;
+use crate::{is_valid_depth, Camera, RgbdFrame};
+
+/// Parameters of [`object_thickness`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SolidConfig {
+    /// Pixels at least this high above the ground plane are object pixels, metres.
+    pub min_height_m: f32,
+    /// Thinnest object, metres (at least twice the map's truncation, so the front band and the
+    /// back face do not overlap).
+    pub min_thickness_m: f32,
+    /// Thickest object, metres (0 = no solids).
+    pub max_thickness_m: f32,
+    /// Neighbouring pixels of one object differ in depth by less than this share of the depth.
+    pub max_depth_step: f32,
+}
+
+impl SolidConfig {
+    /// Objects from 10 cm above the plane, `min_thickness_m` to `max_thickness_m` deep, a run
+    /// broken where the depth steps by more than 5 %.
+    pub fn new(min_thickness_m: f32, max_thickness_m: f32) -> Self {
+        Self { min_height_m: 0.1, min_thickness_m, max_thickness_m, max_depth_step: 0.05 }
+    }
+}
+
+/// Thickness behind the surface (planar depth, metres) of every pixel marked in `missing` that
+/// belongs to an object: valid depth, at least `min_height_m` above `plane`. Object pixels
+/// (observed ones included) are grouped into objects: 4-connected, a step in depth of at most
+/// `max_depth_step` of it. An object is as deep as it is wide: its width `W` is its horizontal
+/// extent in pixels at its median depth (metres), clamped to `min_thickness_m ..=
+/// max_thickness_m`, and its back is the plane at planar depth `nearest + W`. An invented pixel
+/// at depth `d` gets `nearest + W - d`, or 0 where that is under `min_thickness_m` (the back
+/// face would fall inside the front's band). Every other pixel gets 0; with `max_thickness_m
+/// <= 0`, all are 0.
+///
+/// Extruding each pixel by the object's width instead would carry the rays through the top of
+/// an object far beyond its back, sloping down into a low tail that reads as rough ground.
+pub fn object_thickness(
+    frame: &RgbdFrame,
+    missing: &[bool],
+    camera: &Camera,
+    plane: &GroundPlane,
+    cfg: &SolidConfig,
+) -> Vec<f32> {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    let mut out = vec![0.0f32; w * h];
+    let depth = &frame.depth_m.data;
+    let on = cfg.max_thickness_m > 0.0;
+    if !on || depth.len() != w * h || missing.len() != w * h {
+        return out;
+    }
+    let fx = camera.intrinsics.fx;
+    let object: Vec<bool> = (0..w * h)
+        .map(|i| {
+            let d = depth[i];
+            let uv = Vec2::new((i % w) as f32, (i / w) as f32);
+            is_valid_depth(d) && plane.height(camera.unproject_world(uv, d)) >= cfg.min_height_m
+        })
+        .collect();
+    let joined = |a: usize, b: usize| object[b] && (depth[a] - depth[b]).abs() <= cfg.max_depth_step * depth[a];
+    let lo = cfg.min_thickness_m.min(cfg.max_thickness_m);
+    let mut seen = vec![false; w * h];
+    let (mut stack, mut members, mut depths) = (Vec::new(), Vec::new(), Vec::new());
+    for start in 0..w * h {
+        if !object[start] || seen[start] {
+            continue;
+        }
+        // one object: flood fill
+        seen[start] = true;
+        stack.push(start);
+        members.clear();
+        while let Some(i) = stack.pop() {
+            members.push(i);
+            let (u, v) = (i % w, i / w);
+            let mut visit = |j: usize| {
+                if !seen[j] && joined(i, j) {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            };
+            if u > 0 {
+                visit(i - 1);
+            }
+            if u + 1 < w {
+                visit(i + 1);
+            }
+            if v > 0 {
+                visit(i - w);
+            }
+            if v + 1 < h {
+                visit(i + w);
+            }
+        }
+        if !members.iter().any(|&i| missing[i]) {
+            continue;
+        }
+        depths.clear();
+        depths.extend(members.iter().map(|&i| depth[i]));
+        let mid = depths.len() / 2;
+        let median = *depths.select_nth_unstable_by(mid, f32::total_cmp).1;
+        let nearest = depths.iter().copied().fold(f32::INFINITY, f32::min);
+        let (u0, u1) = members.iter().fold((usize::MAX, 0), |(a, b), &i| (a.min(i % w), b.max(i % w)));
+        let width = ((u1 - u0 + 1) as f32 * median / fx).clamp(lo, cfg.max_thickness_m);
+        for &i in &members {
+            let t = nearest + width - depth[i];
+            if missing[i] && t >= lo {
+                out[i] = t;
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3;
+
+    use super::*;
+    use crate::{Image, Intrinsics, Rigid3};
+
+    /// A camera 2 m above the plane y = 0 (OpenCV: y down, so "up" is -y), looking along +z.
+    fn setup(w: u32, h: u32) -> (Camera, GroundPlane) {
+        let k = Intrinsics { width: w, height: h, fx: 100.0, fy: 100.0, cx: w as f32 / 2.0, cy: h as f32 / 2.0 };
+        let camera = Camera { intrinsics: k, world_from_camera: Rigid3::IDENTITY };
+        // ground 2 m below the camera: height = -y + 2
+        let plane = GroundPlane { normal: Vec3::new(0.0, -1.0, 0.0), offset: 2.0, inlier_fraction: 1.0 };
+        (camera, plane)
+    }
+
+    fn frame(w: u32, h: u32, depth: f32) -> RgbdFrame {
+        RgbdFrame { colour: Image::filled(w, h, [0.5; 3]), depth_m: Image::filled(w, h, depth) }
+    }
+
+    #[test]
+    fn an_object_is_as_deep_as_it_is_wide() {
+        let (w, h) = (64, 32);
+        let (camera, plane) = setup(w, h);
+        // a wall 10 m away at the camera's height (2 m above the ground): all object pixels
+        // in the upper half; pixels 10..40 of row 5 are one run 30 px = 3 m wide
+        let mut f = frame(w, h, f32::NAN);
+        for u in 10..40 {
+            *f.depth_m.at_mut(u, 5) = 10.0;
+        }
+        let mut missing = vec![false; (w * h) as usize];
+        for u in 20..40 {
+            missing[(5 * w + u) as usize] = true;
+        }
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(0.5, 2.0));
+        // the observed part counts towards the width but gets no thickness
+        assert_eq!(t[(5 * w + 15) as usize], 0.0);
+        // 3 m wide, clamped to 2 m
+        assert_eq!(t[(5 * w + 25) as usize], 2.0);
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(0.5, 4.0));
+        assert!((t[(5 * w + 25) as usize] - 3.0).abs() < 1e-4);
+        // off
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(0.5, 0.0));
+        assert!(t.iter().all(|&x| x == 0.0));
+    }
+
+    #[test]
+    fn every_pixel_of_an_object_reaches_one_back_plane() {
+        let (w, h) = (64, 32);
+        let (camera, plane) = setup(w, h);
+        // a block 10 px wide (1 m at 10 m) in rows 2..=6, its upper rows further away, like a
+        // top face: depth 10.00 (row 6) to 10.08 (row 2)
+        let mut f = frame(w, h, f32::NAN);
+        for v in 2..=6 {
+            for u in 10..20 {
+                *f.depth_m.at_mut(u, v) = 10.0 + 0.02 * (6 - v) as f32;
+            }
+        }
+        let missing = vec![true; (w * h) as usize];
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(0.5, 2.0));
+        // width 10 px at the median depth 10.04 m: the back at 10 + 1.004 m
+        let at = |t: &[f32], v: u32| t[(v * w + 15) as usize];
+        assert!((at(&t, 6) - 1.004).abs() < 1e-4, "{}", at(&t, 6));
+        assert!((at(&t, 2) - 0.924).abs() < 1e-4, "{}", at(&t, 2));
+        // a pixel whose back would be nearer than the minimum gets none
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(0.95, 2.0));
+        assert_eq!(at(&t, 2), 0.0);
+        assert!(at(&t, 6) > 0.95);
+    }
+
+    #[test]
+    fn depth_steps_split_objects_and_ground_pixels_are_not_objects() {
+        let (w, h) = (64, 32);
+        let (camera, plane) = setup(w, h);
+        let mut f = frame(w, h, f32::NAN);
+        // two objects side by side in row 5: 8 px at 10 m, then 8 px at 12 m
+        for u in 0..8 {
+            *f.depth_m.at_mut(u, 5) = 10.0;
+            *f.depth_m.at_mut(u + 8, 5) = 12.0;
+        }
+        // row 31 (below the centre): the ground, 0 m high where the ray meets it
+        let ground_row = 31;
+        let ray_y = (ground_row as f32 - 16.0) / 100.0;
+        for u in 0..w {
+            *f.depth_m.at_mut(u, ground_row) = 2.0 / ray_y;
+        }
+        let missing = vec![true; (w * h) as usize];
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(0.1, 5.0));
+        assert!((t[(5 * w + 3) as usize] - 0.8).abs() < 1e-4, "{}", t[(5 * w + 3) as usize]);
+        assert!((t[(5 * w + 12) as usize] - 0.96).abs() < 1e-4, "{}", t[(5 * w + 12) as usize]);
+        assert!(t[(ground_row * w) as usize..((ground_row + 1) * w) as usize].iter().all(|&x| x == 0.0));
+        // the minimum thickness applies to a single pixel
+        let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(1.5, 5.0));
+        assert_eq!(t[(5 * w + 3) as usize], 1.5);
+    }
+}
