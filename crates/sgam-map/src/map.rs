@@ -397,12 +397,12 @@ impl<'a> UpdateContext<'a> {
 }
 
 /// A block's sign summary from its rows' summaries.
-pub(crate) fn block_flags(rows: &[u8; ROWS]) -> u8 {
+fn block_flags(rows: &[u8; ROWS]) -> u8 {
     rows.iter().fold(0, |a, &r| a | r)
 }
 
 /// The sign summaries ([`HAS_POSITIVE`] / [`HAS_NEGATIVE`]) of a block's voxel rows.
-pub(crate) fn row_flags_of(block: &Block) -> [u8; ROWS] {
+fn row_flags_of(block: &Block) -> [u8; ROWS] {
     let p = &block.planes;
     std::array::from_fn(|r| row_flags(f32x8::new(p.tsdf[r]), f32x8::new(p.weight[r])))
 }

@@ -3,12 +3,11 @@
 use glam::{IVec3, Vec3};
 use rayon::prelude::*;
 use sgam_core::ground::GroundPlane;
-use sgam_core::{Camera, RgbdFrame};
+use sgam_core::{Camera, RgbdFrame, Rigid3};
 
 use crate::allocate::{touched_blocks, Usable};
 use crate::block::{Block, BLOCK_SIZE, ROWS};
-use crate::layer::disjoint_mut;
-use crate::map::{block_flags, row_flags_of, IntegrateStats};
+use crate::map::IntegrateStats;
 use crate::TsdfMap;
 
 impl TsdfMap {
@@ -96,8 +95,8 @@ impl TsdfMap {
             stats.blocks_allocated += new as usize;
             ids.push(id);
         }
+        // unique: the keys came from a set
         ids.sort_unstable();
-        ids.dedup();
         let ctx = Behind {
             depth,
             thickness: thickness_m,
@@ -105,35 +104,23 @@ impl TsdfMap {
             width: w,
             height: h,
             camera,
+            camera_from_world: camera.world_from_camera.inverse(),
             usable,
             voxel_size_m: cfg.voxel_size_m,
             trunc_m: trunc,
             above: above.copied(),
         };
-        let updated: Vec<(u32, usize, [u8; ROWS])> = {
+        let updated: Vec<(u32, usize)> = {
             let (blocks, keys_of) = self.layer.blocks_mut(&ids);
-            blocks
-                .into_par_iter()
-                .zip(&ids)
-                .map(|(b, &id)| {
-                    let n = ctx.update(b, keys_of[id as usize]);
-                    (id, n, if n > 0 { row_flags_of(b) } else { [0; ROWS] })
-                })
-                .collect()
+            blocks.into_par_iter().zip(&ids).map(|(b, &id)| (id, ctx.update(b, keys_of[id as usize]))).collect()
         };
-        let rows = disjoint_mut(&mut self.row_flags, &ids);
-        let mut changed = Vec::new();
-        for ((id, n, flags), row) in updated.into_iter().zip(rows) {
+        for (id, n) in updated {
             if n > 0 {
-                *row = flags;
-                changed.push(id);
                 stats.blocks_updated += 1;
                 stats.voxels_updated += n;
+                self.refresh_sign_flags(id);
+                self.mark_dirty(id);
             }
-        }
-        for id in changed {
-            self.sign_flags[id as usize] = block_flags(&self.row_flags[id as usize]);
-            self.mark_dirty(id);
         }
         stats
     }
@@ -147,6 +134,7 @@ struct Behind<'a> {
     width: usize,
     height: usize,
     camera: &'a Camera,
+    camera_from_world: Rigid3,
     usable: Usable,
     voxel_size_m: f32,
     trunc_m: f32,
@@ -158,7 +146,6 @@ impl Behind<'_> {
     fn update(&self, block: &mut Block, key: IVec3) -> usize {
         const N: usize = BLOCK_SIZE as usize;
         let k = self.camera.intrinsics;
-        let camera_from_world = self.camera.world_from_camera.inverse();
         let vs = self.voxel_size_m;
         let planes = &mut *block.planes;
         let mut n = 0;
@@ -166,7 +153,7 @@ impl Behind<'_> {
             let (y, z) = ((row % N) as i32, (row / N) as i32);
             for x in 0..N {
                 let world = ((key * BLOCK_SIZE + IVec3::new(x as i32, y, z)).as_vec3() + Vec3::splat(0.5)) * vs;
-                let p = camera_from_world.transform_point(world);
+                let p = self.camera_from_world.transform_point(world);
                 if p.z.is_nan() || p.z <= 0.0 {
                     continue;
                 }
