@@ -42,5 +42,5 @@ pub use config::{TsdfConfig, MAX_DEPTH_M, MAX_TRUNC_VOXELS, MAX_VOXEL_M, MIN_VOX
 pub use error::MapError;
 pub use map::{IntegrateStats, TsdfMap};
 pub use render::Rendered;
-pub use stream::{blocks_mesh, read_tile, super_block_of, write_tile, EvictedBlock};
+pub use stream::{blocks_mesh, read_tile, super_block_of, write_tile, EvictedBlock, ViewReach};
 pub use warp::{warp_colour, SourceSelection, SourceView, WarpConfig, Warped};

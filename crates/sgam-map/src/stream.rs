@@ -286,6 +286,29 @@ impl TileCursor<'_> {
     }
 }
 
+/// A convex region of space (a grown view frustum, [`TsdfMap::view_reach`]).
+#[derive(Debug, Clone, Copy)]
+pub struct ViewReach {
+    /// Faces `(n, d)`, unit `n` pointing out: inside is `n . p <= d`.
+    planes: [(Vec3, f32); 6],
+    /// False when the camera gave no usable faces: then every box counts as inside.
+    finite: bool,
+}
+
+impl ViewReach {
+    /// Whether the box `(lo, hi)` may meet the region: false only when the whole box lies
+    /// outside one face (conservative: a box beyond an edge of the region, outside no single
+    /// face, counts as meeting it).
+    pub fn touches(&self, (lo, hi): (Vec3, Vec3)) -> bool {
+        !self.finite
+            || self.planes.iter().all(|&(n, d)| {
+                // the box's corner farthest against n
+                let p = Vec3::select(n.cmpge(Vec3::ZERO), lo, hi);
+                n.dot(p) <= d
+            })
+    }
+}
+
 /// The super-block holding block `key`.
 pub fn super_block_of(key: IVec3) -> IVec3 {
     IVec3::new(key.x.div_euclid(SUPER_SIZE), key.y.div_euclid(SUPER_SIZE), key.z.div_euclid(SUPER_SIZE))
@@ -321,6 +344,39 @@ impl TsdfMap {
         c.depth_max_m * (1.0 + tx * tx + ty * ty).sqrt()
             + c.trunc_voxels * c.voxel_size_m
             + 2.0 * 3f32.sqrt() * c.block_size_m()
+    }
+
+    /// The part of space a step at `camera` may read or write, grown by `grow_m`: its frustum
+    /// from the camera's centre to `depth_max_m` (planar), with every face moved out by the
+    /// truncation band, two block diagonals (as in [`Self::reach_m`]) and `grow_m`. A step reads
+    /// and writes only inside its frustum (a ray's band and an allocated block stay within the
+    /// band and a block of it), so a map streamed by this region keeps what a step needs while
+    /// letting go of everything behind and beside the view, which a sphere of [`Self::reach_m`]
+    /// would hold.
+    pub fn view_reach(&self, camera: &Camera, grow_m: f32) -> ViewReach {
+        let k = camera.intrinsics;
+        let c = &self.config;
+        let band = c.trunc_voxels * c.voxel_size_m;
+        let grow = band + 2.0 * 3f32.sqrt() * c.block_size_m() + grow_m;
+        let (fx, fy) = (k.fx.max(f32::MIN_POSITIVE), k.fy.max(f32::MIN_POSITIVE));
+        let (left, right) = (k.cx / fx, (k.width as f32 - k.cx) / fx);
+        let (top, bottom) = (k.cy / fy, (k.height as f32 - k.cy) / fy);
+        // camera frame (OpenCV: x right, y down, z forward): inside is n . p <= d
+        let camera_planes = [
+            (Vec3::new(-1.0, 0.0, -left), 0.0),
+            (Vec3::new(1.0, 0.0, -right), 0.0),
+            (Vec3::new(0.0, -1.0, -top), 0.0),
+            (Vec3::new(0.0, 1.0, -bottom), 0.0),
+            (Vec3::new(0.0, 0.0, -1.0), 0.0),
+            (Vec3::new(0.0, 0.0, 1.0), c.depth_max_m + band),
+        ];
+        let pose = &camera.world_from_camera;
+        let planes = camera_planes.map(|(n, d)| {
+            let n = pose.transform_vector(n.normalize_or_zero());
+            (n, d + grow + n.dot(pose.translation))
+        });
+        let finite = planes.iter().all(|(n, d)| n.is_finite() && d.is_finite() && n.length_squared() > 0.5);
+        ViewReach { planes, finite }
     }
 
     /// Lets go of every block of the super-blocks `skeys`: re-meshes what is dirty first, colours

@@ -118,14 +118,15 @@ impl RunConfig {
     }
 
     /// How far beyond its reach a camera looks before far tiles come back
-    /// ([`crate::tiles::MapStreaming::new`]): eight blocks, and one and a half greedy steps
-    /// more for the greedy planner, which renders the cells around the camera.
+    /// ([`crate::tiles::MapStreaming::new`]): eight blocks, one and a half greedy steps more
+    /// for the greedy planner, which renders the cells around the camera, and the deepest solid
+    /// (`--solid-objects`), which is filled that far behind a surface at `--depth-max`.
     pub fn stream_margin_m(&self) -> f32 {
         let greedy = match self.trajectory {
             crate::TrajectorySpec::Greedy { step_m, .. } => 1.5 * step_m,
             _ => 0.0,
         };
-        8.0 * self.map.block_size_m() + greedy
+        8.0 * self.map.block_size_m() + greedy + self.solid_max_m.max(0.0)
     }
 
     /// Checks a configuration read back from a snapshot: its version, counts within bounds, a

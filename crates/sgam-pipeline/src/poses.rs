@@ -92,6 +92,12 @@ pub enum TrajectorySpec {
 }
 
 impl TrajectorySpec {
+    /// Whether its pose source reads the map (the greedy planner renders views around the
+    /// camera to choose the next pose); the others are fixed before the run.
+    pub fn reads_map(&self) -> bool {
+        matches!(self, TrajectorySpec::Greedy { .. })
+    }
+
     /// The pose source of a run of `steps` steps from `seed` (index 0), continuing after the
     /// keyframes `done` (seed first; only the seed for a new run).
     pub fn pose_source(&self, seed: &Camera, steps: usize, done: &[Camera]) -> Result<Box<dyn PoseSource>> {

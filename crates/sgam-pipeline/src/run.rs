@@ -98,7 +98,7 @@ pub fn generate(
     let tiles = TileStore::open(dir, gconfig.tsdf, &tile_index)?;
     // the no-map ablation rebuilds its map every step: nothing to bound
     let max_map_mb = if config.no_map { 0 } else { config.max_map_mb };
-    let mut streaming = MapStreaming::new(max_map_mb, config.stream_margin_m(), tiles);
+    let mut streaming = MapStreaming::new(max_map_mb, config.stream_margin_m(), !config.trajectory.reads_map(), tiles);
     let mut map = map;
     if resumed {
         streaming.mend_borders(&mut map)?;

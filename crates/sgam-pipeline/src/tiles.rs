@@ -2,11 +2,14 @@
 //! disk (`RUN/tiles/`) and come back before a step can read or write them.
 //!
 //! - **When**: after a step, once the map's memory passes the run's bound (`--max-map-mb`),
-//!   every super-block farther than [`MapStreaming::keep_m`] from the camera goes (the map's
-//!   [`TsdfMap::reach_m`] plus two margins). Before a step, every tile within
-//!   [`MapStreaming::bring_m`] (the reach plus one margin) of the previous and the next camera
-//!   comes back. A step therefore reads and writes exactly what it would have with no bound:
-//!   the frames are byte-identical (tested), and the mesh a revisit sees is the one it left.
+//!   every super-block farther than two margins from what a step at the camera may read or
+//!   write goes. That region is the step's view ([`TsdfMap::view_reach`]: its frustum out to
+//!   `--depth-max`, grown by the truncation band and two block diagonals), or, when the poses
+//!   read the map (the greedy planner renders views around the camera), the sphere of the map's
+//!   [`TsdfMap::reach_m`]. Before a step, every tile within one margin of the region of the
+//!   previous and of the next camera comes back. A step therefore reads and writes exactly what
+//!   it would have with no bound: the frames are byte-identical (tested), and the mesh a revisit
+//!   sees is the one it left.
 //! - **Files**: one per tile, `X_Y_Z-G.tile` in the map's own checksummed tile format
 //!   ([`sgam_map::write_tile`]), written atomically. A file is never overwritten: each
 //!   eviction writes a new generation `G`. The snapshot stores the index of the tiles away
@@ -211,6 +214,7 @@ fn box_distance(p: glam::Vec3, (lo, hi): (glam::Vec3, glam::Vec3)) -> f32 {
 pub struct MapStreaming {
     max_bytes: usize,
     margin_m: f32,
+    view_shaped: bool,
     /// The tiles on disk.
     pub tiles: TileStore,
     /// Memory at which the next eviction is tried.
@@ -231,11 +235,14 @@ impl MapStreaming {
     /// A policy bounding the map to `max_mb` MB over `tiles`. `margin_m` is how far beyond its
     /// reach a camera may look before it comes back: more than any step moves the camera, and
     /// than a pose source looks around it (the greedy planner renders the next cells).
-    pub fn new(max_mb: usize, margin_m: f32, tiles: TileStore) -> Self {
+    /// `view_shaped`: the run's poses do not read the map, so what a step needs is its view
+    /// ([`TsdfMap::view_reach`]), not the sphere around its camera.
+    pub fn new(max_mb: usize, margin_m: f32, view_shaped: bool, tiles: TileStore) -> Self {
         let max_bytes = max_mb.saturating_mul(1 << 20);
         Self {
             max_bytes,
             margin_m,
+            view_shaped,
             tiles,
             next_trigger: max_bytes,
             evicted: 0,
@@ -245,28 +252,32 @@ impl MapStreaming {
         }
     }
 
-    /// Tiles within this distance of a camera come back before it reads or writes the map.
-    pub fn bring_m(&self, map: &TsdfMap, camera: &Camera) -> f32 {
-        map.reach_m(camera) + self.margin_m
+    /// Whether super-block box `bx` lies within `margin_m` of what a step at `camera` may read
+    /// or write: its grown frustum when the run's poses do not read the map, else the sphere of
+    /// its reach (a planner renders views around the camera in every direction).
+    fn within(&self, map: &TsdfMap, camera: &Camera, margin_m: f32) -> impl Fn((glam::Vec3, glam::Vec3)) -> bool {
+        let view = self.view_shaped.then(|| map.view_reach(camera, margin_m));
+        let (centre, radius) = (camera.centre_world(), map.reach_m(camera) + margin_m);
+        move |bx| match &view {
+            Some(v) => v.touches(bx),
+            None => box_distance(centre, bx) <= radius,
+        }
     }
 
-    /// Super-blocks farther than this from the camera may go.
-    pub fn keep_m(&self, map: &TsdfMap, camera: &Camera) -> f32 {
-        map.reach_m(camera) + 2.0 * self.margin_m
-    }
-
-    /// Takes back every tile within [`Self::bring_m`] of one of `cameras`.
+    /// Takes back every tile within one margin of what a step at one of `cameras` may read or
+    /// write.
     pub fn bring_near(&mut self, map: &mut TsdfMap, cameras: &[Camera]) -> Result<()> {
         if self.tiles.is_empty() {
             return Ok(());
         }
+        let tests: Vec<_> = cameras.iter().map(|c| self.within(map, c, self.margin_m)).collect();
         let near: Vec<[i32; 3]> = self
             .tiles
             .entries()
             .map(|e| e.key)
             .filter(|&k| {
                 let bx = map.super_block_box(IVec3::from_array(k));
-                cameras.iter().any(|c| box_distance(c.centre_world(), bx) <= self.bring_m(map, c))
+                tests.iter().any(|near| near(bx))
             })
             .collect();
         let mut blocks = Vec::new();
@@ -316,8 +327,9 @@ impl MapStreaming {
         Ok(())
     }
 
-    /// When the map holds more than the bound, sends every super-block farther than
-    /// [`Self::keep_m`] from `camera` to disk. If what stays is still over the bound, the next
+    /// When the map holds more than the bound, sends to disk every super-block farther than two
+    /// margins from what a step at `camera` may read or write (one margin more than a step's
+    /// [`Self::bring_near`] takes back, so a tile does not go and come back every step). If what stays is still over the bound, the next
     /// try waits until the map has grown by an eighth of the bound (each eviction rebuilds the
     /// map's index).
     pub fn let_go_far(&mut self, map: &mut TsdfMap, camera: &Camera) -> Result<()> {
@@ -326,12 +338,8 @@ impl MapStreaming {
         if self.max_bytes == 0 || bytes <= self.next_trigger {
             return Ok(());
         }
-        let keep = self.keep_m(map, camera);
-        let far: Vec<IVec3> = map
-            .super_block_keys()
-            .into_iter()
-            .filter(|&k| box_distance(camera.centre_world(), map.super_block_box(k)) > keep)
-            .collect();
+        let keep = self.within(map, camera, 2.0 * self.margin_m);
+        let far: Vec<IVec3> = map.super_block_keys().into_iter().filter(|&k| !keep(map.super_block_box(k))).collect();
         if !far.is_empty() {
             let mut by_super: BTreeMap<[i32; 3], Vec<EvictedBlock>> = BTreeMap::new();
             for b in map.evict_super_blocks(&far) {
