@@ -16,10 +16,13 @@
 //!   and ground roughness.
 //! - [`kid`]: kernel inception distance on any feature vectors (weight-free when the features
 //!   come from our own encoder).
+//! - [`noref`]: no-reference checks of a world grown from a real seed: the new area's look
+//!   against the seed's, and geometry floating outside the seed's heights.
 
 mod geometry;
 mod image;
 pub mod kid;
+pub mod noref;
 pub mod scene;
 pub mod world;
 

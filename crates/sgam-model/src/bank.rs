@@ -62,6 +62,31 @@ pub struct BankFill {
     /// Cells of the holes left for later: thin bands along the frame's border
     /// ([`BankSearch::defer_thinner_than`]).
     pub deferred: Vec<usize>,
+    /// Where each filled cell's code came from: `[cell, bank frame, bank frame's cell]`.
+    pub sources: Vec<[usize; 3]>,
+}
+
+/// The pixels behind a bank's codes, for a bank built from real frames at the run's own size
+/// (a seed's bank): a hole then takes the source frame's pixels, colour and depth, instead of
+/// the decoder's drawing of their codes, which for a frame unlike the model's training data is
+/// far from them (a Google Earth seed decodes at 13 dB).
+#[derive(Debug, Clone)]
+pub struct BankPixels {
+    /// The frames whose code grids the bank holds, each rolled ([`CodeBank::rolled`]).
+    pub bases: Vec<sgam_core::RgbdFrame>,
+    /// Columns between two rolled copies.
+    pub roll_cells: usize,
+}
+
+impl BankPixels {
+    /// The base frame and the cell `[row, column]` of it behind cell `cell` of bank frame
+    /// `frame` of `bank` (laid out as [`CodeBank::rolled`] lays it out).
+    pub fn source(&self, bank: &CodeBank, frame: usize, cell: usize) -> Option<(&sgam_core::RgbdFrame, [usize; 2])> {
+        let rolls = bank.cols.div_ceil(self.roll_cells.max(1)).max(1);
+        let base = self.bases.get(frame / rolls)?;
+        let roll = (frame % rolls) * self.roll_cells.max(1);
+        Some((base, [cell / bank.cols, (cell % bank.cols + roll) % bank.cols]))
+    }
 }
 
 /// Search settings of [`CodeBank::fill`].
@@ -93,6 +118,29 @@ impl Default for BankSearch {
 }
 
 impl CodeBank {
+    /// A bank of the code grids `grids` (`rows x cols` each), each also rolled left by every
+    /// multiple of `roll_cells` columns (bank frame `g * rolls + r` is grid `g` rolled by
+    /// `r * roll_cells`, `rolls = ceil(cols / roll_cells)`): with the search's sideways shifts
+    /// every offset of a grid is within reach. Rows stay in place (a row holds the ground at
+    /// one distance).
+    pub fn rolled(
+        grids: &[Vec<u32>],
+        [rows, cols]: [usize; 2],
+        roll_cells: usize,
+        n_embed: usize,
+        codebook_crc32: u32,
+    ) -> Self {
+        let mut codes = Vec::new();
+        for grid in grids.iter().filter(|g| g.len() == rows * cols) {
+            for roll in (0..cols).step_by(roll_cells.max(1)) {
+                for r in 0..rows {
+                    codes.extend((0..cols).map(|c| grid[r * cols + (c + roll) % cols] as u16));
+                }
+            }
+        }
+        Self { rows, cols, n_embed, codebook_crc32, codes }
+    }
+
     /// Number of frames.
     pub fn len(&self) -> usize {
         self.codes.len() / (self.rows * self.cols).max(1)
@@ -185,7 +233,7 @@ impl CodeBank {
             return BankFill::default();
         }
         let look = |c: u32| looks.get(c as usize).copied().unwrap_or([0.0; 4]);
-        let (mut draws, mut deferred) = (Vec::new(), Vec::new());
+        let (mut draws, mut deferred, mut sources) = (Vec::new(), Vec::new(), Vec::new());
         for hole in components(missing, rows, cols) {
             if hole.len() < search.min_cells {
                 continue;
@@ -257,10 +305,11 @@ impl CodeBank {
                 let y = ((i / cols) as i32 + shift[0]).clamp(0, rows as i32 - 1) as usize;
                 let x = ((i % cols) as i32 + shift[1]).clamp(0, cols as i32 - 1) as usize;
                 codes[i] = grid[y * cols + x] as u32;
+                sources.push([i, frame, y * cols + x]);
             }
             draws.push(BankDraw { frame, shift, score, cells: hole.len() });
         }
-        BankFill { draws, deferred }
+        BankFill { draws, deferred, sources }
     }
 }
 

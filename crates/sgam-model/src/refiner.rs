@@ -12,7 +12,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
-use crate::bank::{BankDraw, BankFill, BankSearch, CodeBank};
+use crate::bank::{BankDraw, BankFill, BankPixels, BankSearch, CodeBank};
 use crate::config::ModelConfig;
 use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
@@ -155,6 +155,8 @@ pub struct VqRefiner {
     bank: Option<std::sync::Arc<CodeBank>>,
     /// Per code: mean colour and normalised disparity of its decoded patch ([`Self::code_looks`]).
     looks: Option<Vec<[f32; 4]>>,
+    /// The pixels behind the bank's codes: holes take them instead of the decoder's output.
+    bank_pixels: Option<std::sync::Arc<BankPixels>>,
 }
 
 /// What the last [`VqRefiner::complete_at`] call chose (for tests and diagnostics).
@@ -186,6 +188,7 @@ impl VqRefiner {
             plain_codes: None,
             bank: None,
             looks: None,
+            bank_pixels: None,
         }
     }
 
@@ -273,8 +276,13 @@ impl VqRefiner {
         let f = self.config.downsample_factor();
         let (pw, ph) = (w.div_ceil(f) * f, h.div_ceil(f) * f);
         let (mut work, mut mask) = pad_frame(frame, missing, pw, ph);
-        let cells = missing_cells(&mask, pw, ph, f, self.options.missing_cell_threshold);
         let (cw, ch) = (pw / f, ph / f);
+        let bank_fits = self.bank.as_ref().is_some_and(|b| b.rows == ch && b.cols == cw);
+        // with the bank's own pixels, a cell with any missing pixel is quilted: the decoder's
+        // drawing of a hole's edge is what the pixels are there to replace
+        let quilt_pixels = bank_fits && self.bank_pixels.is_some();
+        let threshold = if quilt_pixels { 0.0 } else { self.options.missing_cell_threshold };
+        let cells = missing_cells(&mask, pw, ph, f, threshold);
         let sampling = self.effective_sampling();
         let sampler = (self.config.code_tau.is_some() || self.config.code_head)
             && matches!(sampling, Sampling::Temperature { .. });
@@ -287,21 +295,26 @@ impl VqRefiner {
             }
             _ => None,
         };
-        let bank_fits = self.bank.as_ref().is_some_and(|b| b.rows == ch && b.cols == cw);
         if sampler && n_missing > 0 && bank_fits {
             let mut codes = self.most_likely_codes(&work, &mask, &intrinsics, [ch, cw])?;
             self.code_looks()?;
             let (bank, looks) = (self.bank.as_deref(), self.looks.as_deref());
+            // quilting pixels, every hole is filled: a one-cell hole keeps no decoder drawing
+            let search = BankSearch {
+                min_cells: if quilt_pixels { 1 } else { BankSearch::default().min_cells },
+                ..BankSearch::default()
+            };
             let fill = match (bank, looks) {
-                (Some(bank), Some(looks)) => {
-                    bank.fill(&mut codes, &cells, looks, &BankSearch::default(), &mut self.rng)
-                }
+                (Some(bank), Some(looks)) => bank.fill(&mut codes, &cells, looks, &search, &mut self.rng),
                 _ => BankFill::default(),
             };
             let full = self.decode_codes(&codes, ch, cw)?;
             let mut out = crop_frame(&full, w, h);
             if self.options.keep_observed {
                 keep_observed(&mut out, frame, missing);
+            }
+            if let (Some(bank), Some(pixels)) = (self.bank.as_deref(), self.bank_pixels.as_deref()) {
+                paste_sources(&mut out, missing, &fill, bank, pixels, f);
             }
             // deferred cells keep their provisional colour and no depth: nothing is fused there
             for &c in &fill.deferred {
@@ -588,6 +601,13 @@ impl VqRefiner {
         Ok(())
     }
 
+    /// The pixels behind the bank's codes ([`BankPixels`]; the bank's frames must be the run's
+    /// size): a hole the bank fills takes them instead of the decoder's output. `None` decodes
+    /// the codes.
+    pub fn set_bank_pixels(&mut self, pixels: Option<std::sync::Arc<BankPixels>>) {
+        self.bank_pixels = pixels;
+    }
+
     /// CRC-32 of the codebook (its f32 values, little-endian): what a [`CodeBank`] is tied to.
     pub fn codebook_crc32(&self) -> Result<u32, ModelError> {
         let w: Vec<f32> = to_host(self.model.quantize.embedding.weight.val())?;
@@ -614,6 +634,25 @@ impl VqRefiner {
         }
         let mask = vec![false; w * h];
         self.most_likely_codes(frame, &mask, intrinsics, [h / f, w / f])
+    }
+
+    /// [`Self::frame_codes`] of a frame with pixels the model is told are missing (a real
+    /// seed's holes and sky): their cells take the model's completion.
+    pub fn frame_codes_missing(
+        &mut self,
+        frame: &RgbdFrame,
+        missing: &[bool],
+        intrinsics: &Intrinsics,
+    ) -> Result<Vec<u32>, ModelError> {
+        let (w, h, f) = (frame.width() as usize, frame.height() as usize, self.config.downsample_factor());
+        if !w.is_multiple_of(f) || !h.is_multiple_of(f) || missing.len() != w * h {
+            return Err(ModelError::shape(
+                "a frame to encode",
+                format!("sides that are multiples of {f} and a mask of {} values", w * h),
+                format!("{w}x{h} and {} values", missing.len()),
+            ));
+        }
+        self.most_likely_codes(frame, missing, intrinsics, [h / f, w / f])
     }
 
     /// One encoder pass over a (padded) frame: the most likely code of every cell.
@@ -848,5 +887,83 @@ impl Refiner for VqRefiner {
         // options' seed too: a plain XOR cancelled them (every --seed grew the same world)
         self.rng = ChaCha8Rng::seed_from_u64(self.options.seed.wrapping_mul(0xD1B5_4A32_D192_ED03) ^ guidance.seed);
         self.complete_at(&guidance.frame, &guidance.missing, Some(&guidance.camera.intrinsics))
+    }
+}
+
+/// Copies into the missing pixels of `out` the pixels behind each quilted cell's source
+/// (`[cell, bank frame, bank cell]`, [`BankFill::sources`], hole after hole as `draws` count
+/// them): an `f x f` block of colour and depth from the bank's base frame. Blocks past `out`'s
+/// edges (padding) are cut. A hole's depths are scaled to its surroundings: by the median
+/// ratio of the observed depth around it to the source's depth at the same places (the cells
+/// next to the hole's and their sources' neighbours), so a piece of the seed taken from
+/// nearer or farther sits at the depth of the surface it continues.
+fn paste_sources(
+    out: &mut RgbdFrame,
+    missing: &[bool],
+    fill: &BankFill,
+    bank: &CodeBank,
+    pixels: &BankPixels,
+    f: usize,
+) {
+    let (w, h) = (out.width() as usize, out.height() as usize);
+    let (rows, cols) = (bank.rows as i64, bank.cols as i64);
+    let valid = |d: f32| d.is_finite() && d > 0.0;
+    let mut rest = &fill.sources[..];
+    for draw in &fill.draws {
+        let (hole, after) = rest.split_at(draw.cells.min(rest.len()));
+        rest = after;
+        let in_hole: std::collections::HashSet<usize> = hole.iter().map(|s| s[0]).collect();
+        // the depth ratios around the hole
+        let mut ratios = Vec::new();
+        for &[cell, frame, source] in hole {
+            let (cy, cx) = ((cell / bank.cols) as i64, (cell % bank.cols) as i64);
+            let (sy, sx) = ((source / bank.cols) as i64, (source % bank.cols) as i64);
+            for (dy, dx) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
+                let (ny, nx, my, mx) = (cy + dy, cx + dx, sy + dy, sx + dx);
+                if ny < 0 || nx < 0 || ny >= rows || nx >= cols || my < 0 || mx < 0 || my >= rows || mx >= cols {
+                    continue;
+                }
+                if in_hole.contains(&((ny * cols + nx) as usize)) {
+                    continue;
+                }
+                let Some((base, [by, bx])) = pixels.source(bank, frame, (my * cols + mx) as usize) else { continue };
+                let bw = base.width() as usize;
+                for py in 0..f {
+                    for px in 0..f {
+                        let (y, x) = (ny as usize * f + py, nx as usize * f + px);
+                        let (qy, qx) = (by * f + py, bx * f + px);
+                        if y >= h || x >= w || qy >= base.height() as usize || qx >= bw || missing[y * w + x] {
+                            continue;
+                        }
+                        let (t, s) = (out.depth_m.data[y * w + x], base.depth_m.data[qy * bw + qx]);
+                        if valid(t) && valid(s) {
+                            ratios.push(t / s);
+                        }
+                    }
+                }
+            }
+        }
+        let scale = if ratios.len() >= 8 {
+            let mid = ratios.len() / 2;
+            ratios.select_nth_unstable_by(mid, f32::total_cmp);
+            ratios[mid].clamp(0.25, 4.0)
+        } else {
+            1.0
+        };
+        for &[cell, frame, source] in hole {
+            let Some((base, [sy, sx])) = pixels.source(bank, frame, source) else { continue };
+            let (bw, bh) = (base.width() as usize, base.height() as usize);
+            let (cy, cx) = (cell / bank.cols, cell % bank.cols);
+            for dy in 0..f {
+                for dx in 0..f {
+                    let (y, x, by, bx) = (cy * f + dy, cx * f + dx, sy * f + dy, sx * f + dx);
+                    if y >= h || x >= w || by >= bh || bx >= bw || !missing[y * w + x] {
+                        continue;
+                    }
+                    out.colour.data[y * w + x] = base.colour.data[by * bw + bx];
+                    out.depth_m.data[y * w + x] = base.depth_m.data[by * bw + bx] * scale;
+                }
+            }
+        }
     }
 }

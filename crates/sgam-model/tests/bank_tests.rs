@@ -1,5 +1,7 @@
 //! Completion from a code bank: a hole takes a bank frame's codes, a thin band at the border
-//! waits (no depth), and a bank of another codebook is refused.
+//! waits (no depth), a bank of another codebook is refused, and a bank with its frames' pixels
+//! (a seed's own bank) pastes those pixels into every hole, however small, at the depth of what
+//! surrounds it.
 
 mod common;
 
@@ -7,7 +9,7 @@ use std::sync::Arc;
 
 use common::frame;
 use sgam_core::Intrinsics;
-use sgam_model::bank::CodeBank;
+use sgam_model::bank::{BankPixels, CodeBank};
 use sgam_model::{default_device, ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
 
 /// A tiny generative refiner and a bank of four random frames' codes.
@@ -97,4 +99,82 @@ fn a_bank_of_another_codebook_is_refused() {
     let smaller = CodeBank { n_embed: bank.n_embed - 1, ..bank };
     assert!(r.set_bank(Some(Arc::new(smaller))).is_err());
     assert!(r.bank().is_none());
+}
+
+#[test]
+fn a_rolled_bank_and_its_pixels_agree_cell_for_cell() {
+    let (mut r, _) = refiner_and_bank();
+    let k = Intrinsics::from_fov_x(32, 32, 1.0);
+    let frames = [frame(32, 32, 40), frame(32, 32, 41)];
+    let grids: Vec<Vec<u32>> = frames.iter().map(|f| r.frame_codes(f, &k).unwrap()).collect();
+    let side = grids[0].len().isqrt();
+    let bank = CodeBank::rolled(&grids, [side, side], 3, r.config().n_embed, r.codebook_crc32().unwrap());
+    let rolls = side.div_ceil(3);
+    assert_eq!(bank.len(), 2 * rolls);
+    let pixels = BankPixels { bases: frames.to_vec(), roll_cells: 3 };
+    for f in 0..bank.len() {
+        for cell in 0..side * side {
+            let (base, [y, x]) = pixels.source(&bank, f, cell).unwrap();
+            let g = if std::ptr::eq(base, &pixels.bases[0]) { 0 } else { 1 };
+            assert_eq!(g, f / rolls, "frame {f}");
+            assert_eq!(bank.frame(f)[cell] as u32, grids[g][y * side + x], "frame {f} cell {cell}");
+        }
+    }
+    assert!(pixels.source(&bank, bank.len(), 0).is_none());
+}
+
+#[test]
+fn with_the_banks_pixels_every_hole_takes_them_even_one_pixel_at_its_surroundings_depth() {
+    let (mut r, _) = refiner_and_bank();
+    let (w, h) = (32u32, 32u32);
+    let k = Intrinsics::from_fov_x(w, h, 1.0);
+    // the bank's frames hold a surface 10 m away, the frame to complete one 12.5 m away: what
+    // a hole takes from the bank is moved to the depth of what surrounds it (x 1.25)
+    let mut frames = [frame(w, h, 50), frame(w, h, 51)];
+    for fr in &mut frames {
+        fr.depth_m.data.fill(10.0);
+    }
+    let grids: Vec<Vec<u32>> = frames.iter().map(|f| r.frame_codes(f, &k).unwrap()).collect();
+    let side = grids[0].len().isqrt();
+    let f = 32 / side;
+    let bank = Arc::new(CodeBank::rolled(&grids, [side, side], 2, r.config().n_embed, r.codebook_crc32().unwrap()));
+    let pixels = Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: 2 });
+    r.set_bank(Some(bank.clone())).unwrap();
+    r.set_bank_pixels(Some(pixels.clone()));
+    let mut g = frame(w, h, 9);
+    g.depth_m.data.fill(12.5);
+    // a 2 x 2-cell hole (cells 1..3) and, in a cell away from it and from the border, one
+    // missing pixel: each is filled from the bank (without the bank's pixels a cell with one
+    // missing pixel counts as observed, and its pixel gets the decoder's drawing)
+    assert!(side >= 7, "{side} cells a side");
+    let (fw, last) = (f as u32, (side - 3) as u32 * f as u32);
+    let lone = (last + 1) * w + last + 2;
+    let missing: Vec<bool> =
+        (0..w * h).map(|p| ((fw..3 * fw).contains(&(p % w)) && (fw..3 * fw).contains(&(p / w))) || p == lone).collect();
+    let out = r.complete(&g, &missing).unwrap();
+    let t = r.trace();
+    assert_eq!(t.bank_draws.len(), 2, "the hole and the lone pixel's cell: {:?}", t.bank_draws);
+    let mut draws = t.bank_draws.iter();
+    let mut checked = 0;
+    for hole in sgam_model::bank::components(&t.missing_cells, side, side) {
+        let d = draws.next().unwrap();
+        for &cell in &hole {
+            let (y, x) = ((cell / side) as i32 + d.shift[0], (cell % side) as i32 + d.shift[1]);
+            let (base, [sy, sx]) = pixels.source(&bank, d.frame, y as usize * side + x as usize).unwrap();
+            for dy in 0..f {
+                for dx in 0..f {
+                    let p = (cell / side * f + dy) * w as usize + cell % side * f + dx;
+                    let q = (sy * f + dy) * w as usize + sx * f + dx;
+                    if missing[p] {
+                        assert_eq!(out.colour.data[p], base.colour.data[q], "pixel {p}");
+                        assert!((out.depth_m.data[p] - 1.25 * base.depth_m.data[q]).abs() < 1e-4, "pixel {p}");
+                        checked += 1;
+                    } else {
+                        assert_eq!(out.colour.data[p], g.colour.data[p], "observed pixel {p}");
+                    }
+                }
+            }
+        }
+    }
+    assert_eq!(checked, missing.iter().filter(|m| **m).count());
 }

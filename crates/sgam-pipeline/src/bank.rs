@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
-use sgam_model::bank::CodeBank;
+use sgam_model::bank::{BankPixels, CodeBank};
 use sgam_model::VqRefiner;
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
 
@@ -16,14 +16,18 @@ use crate::{PipelineError, Result, HELD_OUT_SEED_BASE};
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BankSpec {
-    /// The bundled bank for a CLEVR-Infinite seed grown by the bundled model, else none
-    /// ([`BankSpec::resolve`]; a run's resolved configuration never holds it).
+    /// The bundled bank for a synthetic CLEVR-Infinite seed grown by the bundled model, the
+    /// seed's own for a seed from outside the synthetic world, else none
+    /// ([`BankSpec::resolve_for`]; a run's resolved configuration never holds it).
     Auto,
     /// None: the model samples every hole's codes itself.
     #[default]
     None,
     /// The bank shipped with the bundled model (`models/bank.bin`).
     Bundled,
+    /// A bank built from the seed frame itself ([`seed_bank`]): holes are quilted from the
+    /// seed's own codes, so a seed from outside the synthetic world grows in its own palette.
+    Seed,
     /// A bank file (`sgam train bank`).
     File(PathBuf),
 }
@@ -36,6 +40,7 @@ impl std::str::FromStr for BankSpec {
             "auto" => BankSpec::Auto,
             "none" => BankSpec::None,
             "bundled" => BankSpec::Bundled,
+            "seed" => BankSpec::Seed,
             path => BankSpec::File(PathBuf::from(path)),
         })
     }
@@ -47,6 +52,7 @@ impl std::fmt::Display for BankSpec {
             BankSpec::Auto => f.write_str("auto"),
             BankSpec::None => f.write_str("none"),
             BankSpec::Bundled => f.write_str("bundled"),
+            BankSpec::Seed => f.write_str("seed"),
             BankSpec::File(p) => write!(f, "{}", p.display()),
         }
     }
@@ -54,14 +60,18 @@ impl std::fmt::Display for BankSpec {
 
 impl BankSpec {
     /// [`BankSpec::resolve`] for a run from `seed`: the bundled bank fits a synthetic
-    /// CLEVR-Infinite seed at 256 px.
+    /// CLEVR-Infinite seed at 256 px; a seed from outside the synthetic world (Google Earth, a
+    /// user's RGB-D) is quilted from itself.
     pub fn resolve_for(&self, seed: &crate::SeedSpec, bundled_model: bool) -> BankSpec {
-        self.resolve(matches!(seed, crate::SeedSpec::Synthetic { res: 256, .. }), bundled_model)
+        match (self, seed) {
+            (BankSpec::Auto, crate::SeedSpec::Rgbd { .. } | crate::SeedSpec::GoogleEarth { .. }) => BankSpec::Seed,
+            _ => self.resolve(matches!(seed, crate::SeedSpec::Synthetic { res: 256, .. }), bundled_model),
+        }
     }
 
-    /// [`BankSpec::Auto`] made concrete: the bundled bank when the seed's frames are the
-    /// bundled bank's kind (`fits`: synthetic CLEVR-Infinite at 256 px) and the model the
-    /// bundled one (`bundled_model`), else none; other choices as they are.
+    /// [`BankSpec::Auto`] made concrete for a synthetic seed: the bundled bank when the seed's
+    /// frames are the bundled bank's kind (`fits`: synthetic CLEVR-Infinite at 256 px) and the
+    /// model the bundled one (`bundled_model`), else none; other choices as they are.
     pub fn resolve(&self, fits: bool, bundled_model: bool) -> BankSpec {
         match self {
             BankSpec::Auto if fits && bundled_model => BankSpec::Bundled,
@@ -70,27 +80,47 @@ impl BankSpec {
         }
     }
 
-    /// Whether the user named a bank (bundled or a file).
+    /// Whether the user named a bank (bundled, the seed's or a file).
     pub fn is_explicit(&self) -> bool {
+        matches!(self, BankSpec::Bundled | BankSpec::Seed | BankSpec::File(_))
+    }
+
+    /// Whether the bank holds frames of the synthetic CLEVR-Infinite world (bundled or a file
+    /// from `sgam train bank`).
+    pub fn is_synthetic(&self) -> bool {
         matches!(self, BankSpec::Bundled | BankSpec::File(_))
     }
 
-    /// Loads the bank (`None` for [`BankSpec::None`], and for an unresolved
-    /// [`BankSpec::Auto`]), naming the file in errors.
-    pub fn load(&self) -> Result<Option<Arc<CodeBank>>> {
-        let bank = match self {
-            BankSpec::None | BankSpec::Auto => return Ok(None),
-            BankSpec::Bundled => CodeBank::from_bytes(crate::refiners::BUNDLED_BANK)?,
-            BankSpec::File(p) => CodeBank::read(p)?,
+    /// Gives `refiner` the bank (none for [`BankSpec::None`] and an unresolved
+    /// [`BankSpec::Auto`]), naming the file in errors; [`BankSpec::Seed`] is built from `seed`
+    /// (which it needs), with the seed's pixels behind its codes.
+    pub fn load_into(&self, refiner: &mut VqRefiner, seed: Option<&crate::Seed>) -> Result<()> {
+        let (bank, pixels) = match (self, seed) {
+            (BankSpec::None | BankSpec::Auto, _) => (None, None),
+            (BankSpec::Seed, Some(seed)) => {
+                let (bank, pixels) = seed_bank(refiner, &seed.frame, &seed.camera.intrinsics)?;
+                (Some(bank), Some(Arc::new(pixels)))
+            }
+            (BankSpec::Seed, None) => {
+                return Err(PipelineError::Config("--bank seed needs the seed frame to build its bank from".into()))
+            }
+            (BankSpec::Bundled, _) => (Some(CodeBank::from_bytes(crate::refiners::BUNDLED_BANK)?), None),
+            (BankSpec::File(p), _) => (Some(CodeBank::read(p).map_err(|e| PipelineError::Model(e.in_file(p)))?), None),
         };
-        Ok(Some(Arc::new(bank)))
+        refiner.set_bank(bank.map(Arc::new)).map_err(|e| match self {
+            BankSpec::File(p) => PipelineError::Model(e.in_file(p)),
+            _ => PipelineError::Model(e),
+        })?;
+        refiner.set_bank_pixels(pixels);
+        Ok(())
     }
 
     /// The bank's [`bank_id`] (`None` without a bank): a resumed run refuses a bank that changed
     /// since it started.
     pub fn crc32(&self) -> Result<Option<u32>> {
         Ok(match self {
-            BankSpec::None | BankSpec::Auto => None,
+            // the seed's bank follows from the seed and the model, which a resume checks
+            BankSpec::None | BankSpec::Auto | BankSpec::Seed => None,
             BankSpec::Bundled => Some(bank_id(crate::refiners::BUNDLED_BANK)),
             BankSpec::File(p) => {
                 Some(bank_id(&std::fs::read(p).map_err(|e| sgam_io::IoError::Io { path: p.clone(), source: e })?))
@@ -158,6 +188,53 @@ pub fn build_bank(
     let side = (res / f) as usize;
     let codebook_crc32 = refiner.codebook_crc32()?;
     Ok(CodeBank { rows: side, cols: side, n_embed: refiner.config().n_embed, codebook_crc32, codes })
+}
+
+/// Columns between two rolled copies of the seed in its bank: with the search's horizontal
+/// shifts of up to 2 cells, every offset of the seed is within reach of one copy.
+const SEED_ROLL_CELLS: usize = 5;
+
+/// The bank of a seed frame (`--bank seed`): the model's codes of the frame and of its mirror
+/// image, each rolled sideways by every multiple of [`SEED_ROLL_CELLS`] columns
+/// ([`CodeBank::rolled`]), with the two frames' pixels behind them. A hole takes the pixels of
+/// the part of the seed whose surroundings match its own: the seed's palette and textures,
+/// quilted (Efros & Freeman 2001), whatever the model learned. Pixels without a valid depth (a
+/// real seed's holes, Google Earth's sky) are given to the model as missing.
+pub fn seed_bank(
+    refiner: &mut VqRefiner,
+    frame: &sgam_core::RgbdFrame,
+    k: &sgam_core::Intrinsics,
+) -> Result<(CodeBank, BankPixels)> {
+    let f = refiner.config().downsample_factor();
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    if !w.is_multiple_of(f) || !h.is_multiple_of(f) {
+        return Err(PipelineError::Config(format!(
+            "--bank seed: the seed is {w}x{h} px; a bank needs sides that are multiples of {f}"
+        )));
+    }
+    let missing = |fr: &sgam_core::RgbdFrame| -> Vec<bool> {
+        fr.depth_m.data.iter().map(|d| !(d.is_finite() && *d > 0.0)).collect()
+    };
+    let mirror = mirrored(frame);
+    let mirror_k = sgam_core::Intrinsics { cx: w as f32 - 1.0 - k.cx, ..*k };
+    let grids = [
+        refiner.frame_codes_missing(frame, &missing(frame), k)?,
+        refiner.frame_codes_missing(&mirror, &missing(&mirror), &mirror_k)?,
+    ];
+    let bank =
+        CodeBank::rolled(&grids, [h / f, w / f], SEED_ROLL_CELLS, refiner.config().n_embed, refiner.codebook_crc32()?);
+    Ok((bank, BankPixels { bases: vec![frame.clone(), mirror], roll_cells: SEED_ROLL_CELLS }))
+}
+
+/// `frame` mirrored left to right.
+fn mirrored(frame: &sgam_core::RgbdFrame) -> sgam_core::RgbdFrame {
+    let mut out = frame.clone();
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    for y in 0..h {
+        out.colour.data[y * w..(y + 1) * w].reverse();
+        out.depth_m.data[y * w..(y + 1) * w].reverse();
+    }
+    out
 }
 
 /// Writes `bank` to `path` atomically.

@@ -101,8 +101,8 @@ pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
     Ok(match spec {
         RefinerSpec::Model { model, options, bank } => {
             let mut refiner = model_refiner(model.as_deref(), *options)?;
-            let loaded = bank.load()?;
-            if let Some(b) = &loaded {
+            bank.load_into(&mut refiner, Some(seed))?;
+            if let Some(b) = refiner.bank() {
                 let f = refiner.config().downsample_factor();
                 let (w, h) = (seed.frame.width() as usize, seed.frame.height() as usize);
                 if (b.cols * f, b.rows * f) != (w, h) {
@@ -114,10 +114,6 @@ pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
                     );
                 }
             }
-            refiner.set_bank(loaded).map_err(|e| match bank {
-                BankSpec::File(p) => PipelineError::Model(e.in_file(p)),
-                _ => PipelineError::Model(e),
-            })?;
             AnyRefiner::Model(Box::new(refiner))
         }
         RefinerSpec::Null { fill } => AnyRefiner::Null(NullRefiner { fill: *fill }),

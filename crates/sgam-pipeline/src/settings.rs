@@ -373,12 +373,16 @@ pub struct RefinerSettings {
     #[arg(long)]
     pub no_refine: bool,
     /// Complete each hole from a bank of true frames' codes instead of sampling it cell by cell
-    /// (auto, none, bundled, or a file from `sgam train bank`): the hole takes the codes of the
-    /// real frame whose cells around it look most like the visible ones, so it holds whole
-    /// objects; thin bands along the frame's border wait until they are 3 cells wide. auto:
-    /// the bundled bank for a CLEVR-Infinite seed grown by the bundled model. The bank must
-    /// come from the same model (checked). CLEVR-Infinite seeds only: its frames are synthetic.
-    #[arg(long, value_name = "none|bundled|FILE", default_value_t = BankSpec::Auto)]
+    /// (auto, none, bundled, seed, or a file from `sgam train bank`): the hole takes the codes
+    /// of the real frame whose cells around it look most like the visible ones, so it holds
+    /// whole objects; thin bands along the frame's border wait until they are 3 cells wide.
+    /// auto: the bundled bank for a CLEVR-Infinite seed grown by the bundled model, seed for a
+    /// Google Earth or RGB-D seed. The bank must come from the same model (checked). bundled
+    /// and bank files hold synthetic CLEVR-Infinite frames, for those seeds only; seed builds
+    /// the bank from the seed frame itself (and its mirror image), and a hole takes the seed's
+    /// pixels, so the new area grows in the seed's own look (the model has only seen the
+    /// synthetic world).
+    #[arg(long, value_name = "none|bundled|seed|FILE", default_value_t = BankSpec::Auto)]
     pub bank: BankSpec,
 }
 
@@ -803,10 +807,10 @@ impl RunSettings {
         let preset = seed.preset();
         let uses_model = matches!(self.refiner.effective(), RefinerKind::Auto | RefinerKind::Model);
         let clevr_seed = matches!(seed, crate::SeedSpec::Synthetic { .. } | crate::SeedSpec::ClevrTemplate { .. });
-        if uses_model && self.refiner.bank.is_explicit() && !clevr_seed {
+        if uses_model && self.refiner.bank.is_synthetic() && !clevr_seed {
             config_error!(
-                "--bank {}: a code bank holds frames of the synthetic CLEVR-Infinite world, and this seed is not one \
-                 (leave out --bank)",
+                "--bank {}: this code bank holds frames of the synthetic CLEVR-Infinite world, and this seed is not \
+                 one (leave out --bank, or --bank seed to quilt holes from the seed itself)",
                 self.refiner.bank
             );
         }
@@ -960,6 +964,17 @@ mod tests {
         assert_eq!(bank(&s), BankSpec::None, "another model may have another codebook");
         s.refiner.bank = BankSpec::Bundled;
         assert_eq!(bank(&s), BankSpec::Bundled, "named, it is used (and checked when loaded)");
+        // a seed from outside the synthetic world is quilted from itself, by any model
+        for spec in [
+            crate::SeedSpec::GoogleEarth { dir: "ge/seed0".into() },
+            crate::SeedSpec::Rgbd { rgb: "a.png".into(), depth: "a.npy".into(), intrinsics: [30.0, 30.0, 16.0, 16.0] },
+        ] {
+            assert_eq!(BankSpec::Auto.resolve_for(&spec, true), BankSpec::Seed);
+            assert_eq!(BankSpec::Auto.resolve_for(&spec, false), BankSpec::Seed);
+            assert_eq!(BankSpec::None.resolve_for(&spec, true), BankSpec::None, "--bank none draws with the model");
+        }
+        let template = crate::SeedSpec::ClevrTemplate { dir: "t".into() };
+        assert_eq!(BankSpec::Auto.resolve_for(&template, true), BankSpec::None);
     }
 
     #[test]

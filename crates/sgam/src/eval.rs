@@ -22,6 +22,10 @@ pub enum EvalCommand {
     /// no-map and no-refine ablations and the oracle through `eval world` and `eval one-step`,
     /// as Markdown, plus the overview pictures side by side.
     Table(crate::eval_table::TableArgs),
+    /// No-reference checks of a world grown from a real seed (Google Earth, a user's RGB-D),
+    /// which has no true world: the new area's colour and texture against the seed's (KID of
+    /// patches), geometry floating outside the seed's heights, and the new area per frame.
+    Seed(crate::eval_seed::SeedArgs),
 }
 
 /// Arguments of `sgam eval mesh`.
@@ -70,6 +74,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
             Ok(())
         }
         EvalCommand::Table(a) => crate::eval_table::run(&a),
+        EvalCommand::Seed(a) => crate::eval_seed::run(&a),
         EvalCommand::OneStep(a) => {
             a.validate()?;
             let line = match a.refiner {

@@ -153,6 +153,7 @@ impl WorldArgs {
                     "-bank{:08x}",
                     sgam_pipeline::bank::bank_id(&std::fs::read(p).unwrap_or_default())
                 )),
+                sgam_pipeline::BankSpec::Seed => label.push_str("-bankseed"),
             }
         }
         let p = &self.invented;

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use anyhow::{bail, Result};
 use clap::Args;
 use sgam_pipeline::snapshot::SNAPSHOT_FILE;
-use sgam_pipeline::{RefinerSpec, RunSettings};
+use sgam_pipeline::{BankSpec, RefinerSpec, RunSettings};
 
 use crate::guard::{in_range, RunLock};
 
@@ -161,7 +161,14 @@ pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>>
     Ok(match run.refiner_spec() {
         RefinerSpec::Model { model, options, bank } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
-            r.set_bank(bank.resolve_for(&run.seed.spec()?, model.is_none()).load()?)?;
+            let seed = run.seed.spec()?;
+            let bank = bank.resolve_for(&seed, model.is_none());
+            // only the seed's own bank reads the seed frame
+            let frame = match bank {
+                BankSpec::Seed => Some(seed.load()?),
+                _ => None,
+            };
+            bank.load_into(&mut r, frame.as_ref())?;
             Some(r)
         }
         RefinerSpec::Null { .. } | RefinerSpec::Oracle => None,

@@ -10,6 +10,7 @@ mod convert;
 mod eval;
 mod eval_grow;
 mod eval_report;
+mod eval_seed;
 mod eval_table;
 mod eval_trajectories;
 mod eval_world;

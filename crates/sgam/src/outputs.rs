@@ -116,13 +116,20 @@ impl RunObserver for CliObserver<'_> {
 /// Says how far a seed from outside the synthetic world is from what the model learned (its
 /// reconstruction PSNR against [`sgam_pipeline::DOMAIN_PSNR_DB`]), and what to do about it.
 fn domain_check(config: &RunConfig, seed: &Seed) {
-    let sgam_pipeline::RefinerSpec::Model { model, .. } = &config.refiner else { return };
+    let sgam_pipeline::RefinerSpec::Model { model, bank, .. } = &config.refiner else { return };
     match sgam_pipeline::seed_reconstruction_psnr(model.as_deref(), seed) {
+        Ok(psnr) if psnr < sgam_pipeline::DOMAIN_PSNR_DB && *bank == sgam_pipeline::BankSpec::Seed => eprintln!(
+            "note: the model reconstructs this seed at {psnr:.1} dB, far below the ~30 dB of the synthetic \
+             CLEVR-Infinite frames it was trained on, so it does not draw the new area: every hole is quilted \
+             from the seed's own pixels (--bank seed), and the world grows in the seed's look, repeating its \
+             parts. `sgam eval seed RUN` compares the new area with the seed"
+        ),
         Ok(psnr) if psnr < sgam_pipeline::DOMAIN_PSNR_DB => eprintln!(
             "warning: the model reconstructs this seed at {psnr:.1} dB, far below the ~30 dB of the synthetic \
              CLEVR-Infinite frames it was trained on: it has not seen scenes like this one, and what it invents \
              will look like CLEVR's grey floor and coloured solids. Judge the new area by eye (--guidance-png \
-             shows every step), or grow with --refiner null for a neutral fill"
+             shows every step), quilt the holes from the seed itself with --bank seed, or grow with --refiner \
+             null for a neutral fill"
         ),
         Ok(psnr) => {
             eprintln!("domain check: the model reconstructs this seed at {psnr:.1} dB (synthetic CLEVR frames: ~30 dB)")

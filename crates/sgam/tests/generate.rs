@@ -365,3 +365,47 @@ fn a_run_bounded_by_max_map_mb_writes_its_world_as_tiles_and_as_one_mesh() {
     }
     assert!(run.join("overview.png").is_file() && !run.join("map.bin").exists());
 }
+
+#[test]
+fn a_real_seed_grows_from_its_own_pixels_and_eval_seed_judges_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    // a 64 px frame of the synthetic world, saved as a user's RGB-D seed
+    let res = 64;
+    let camera = seed_camera(res);
+    let frame =
+        Renderer::new(&Scene::generate(77, &SceneConfig::default())).render(&camera, &RenderConfig::default()).frame;
+    let (rgb, depth) = (tmp.path().join("seed.png"), tmp.path().join("seed.npy"));
+    sgam_io::write_rgb_png(&rgb, &frame.colour).unwrap();
+    sgam_io::write_npy_f32(&depth, &frame.depth_m).unwrap();
+    let k = camera.intrinsics;
+    let intrinsics = format!("{},{},{},{}", k.fx, k.fy, k.cx, k.cy);
+    let run = tmp.path().join("run");
+    let seed_args =
+        ["--seed-rgb", rgb.to_str().unwrap(), "--seed-depth", depth.to_str().unwrap(), "--intrinsics", &intrinsics];
+    let mut args = vec!["generate", "--out", run.to_str().unwrap(), "--steps", "8", "--bank", "seed", "--no-video"];
+    args.extend(seed_args);
+    ok(&args);
+    let run_json: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    assert!(run_json.to_string().contains(r#""bank":"seed""#), "run.json does not name the seed's bank");
+    // a bank of synthetic frames is refused for this seed, naming the one that fits
+    let other = tmp.path().join("x");
+    let mut args = vec!["generate", "--out", other.to_str().unwrap(), "--steps", "2", "--bank", "bundled"];
+    args.extend(seed_args);
+    let out = sgam(&args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--bank seed"), "{err}");
+    // the no-reference check: every frame judged, the seed's 3 x 3 patches, new area growing
+    let out = sgam(&["eval", "seed", run.to_str().unwrap(), "--stride", "1", "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["judged_frames"], 8);
+    assert_eq!(v["seed_patches"], 9);
+    let shares: Vec<f64> = v["new_area_share"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    assert_eq!(shares.len(), 8);
+    assert!(shares.iter().all(|s| (0.0..=1.0).contains(s)) && shares[7] > 0.0, "{shares:?}");
+    let floating = v["floating_share"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&floating));
+    // a folder with no run in it is named
+    let out = sgam(&["eval", "seed", tmp.path().join("nothing").to_str().unwrap()]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("nothing"));
+}
