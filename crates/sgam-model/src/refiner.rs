@@ -308,13 +308,33 @@ impl VqRefiner {
                 (Some(bank), Some(looks)) => bank.fill(&mut codes, &cells, looks, &search, &mut self.rng),
                 _ => BankFill::default(),
             };
-            let full = self.decode_codes(&codes, ch, cw)?;
-            let mut out = crop_frame(&full, w, h);
-            if self.options.keep_observed {
-                keep_observed(&mut out, frame, missing);
-            }
-            if let (Some(bank), Some(pixels)) = (self.bank.as_deref(), self.bank_pixels.as_deref()) {
+            let mut out = if quilt_pixels {
+                // nothing is left to the decoder: every cell with a missing pixel is quilted now
+                // or waits, and the observed pixels are the guidance's
+                frame.clone()
+            } else {
+                let full = self.decode_codes(&codes, ch, cw)?;
+                let mut out = crop_frame(&full, w, h);
+                if self.options.keep_observed {
+                    keep_observed(&mut out, frame, missing);
+                }
+                out
+            };
+            if let (Some(bank), Some(pixels), Some(looks)) =
+                (self.bank.as_deref(), self.bank_pixels.as_deref(), self.looks.as_deref())
+            {
                 paste_sources(&mut out, missing, &fill, bank, pixels, f);
+                // the bands that wait are coloured from the seed too (their depth goes below)
+                if !fill.deferred.is_empty() {
+                    let mut waiting = vec![false; cells.len()];
+                    for &c in &fill.deferred {
+                        waiting[c] = true;
+                    }
+                    let mut scratch = codes.clone();
+                    let now = BankSearch { defer_thinner_than: 0, ..search };
+                    let provisional = bank.fill(&mut scratch, &waiting, looks, &now, &mut self.rng);
+                    paste_sources(&mut out, missing, &provisional, bank, pixels, f);
+                }
             }
             // deferred cells keep their provisional colour and no depth: nothing is fused there
             for &c in &fill.deferred {

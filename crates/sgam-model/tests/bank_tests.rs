@@ -178,3 +178,38 @@ fn with_the_banks_pixels_every_hole_takes_them_even_one_pixel_at_its_surrounding
     }
     assert_eq!(checked, missing.iter().filter(|m| **m).count());
 }
+
+#[test]
+fn with_the_banks_pixels_a_band_that_waits_is_coloured_from_them_with_no_depth() {
+    let (mut r, _) = refiner_and_bank();
+    let (w, h) = (32u32, 32u32);
+    let k = Intrinsics::from_fov_x(w, h, 1.0);
+    let frames = [frame(w, h, 60), frame(w, h, 61)];
+    let grids: Vec<Vec<u32>> = frames.iter().map(|f| r.frame_codes(f, &k).unwrap()).collect();
+    let side = grids[0].len().isqrt();
+    let f = (w as usize / side) as u32;
+    r.set_bank(Some(Arc::new(CodeBank::rolled(
+        &grids,
+        [side, side],
+        2,
+        r.config().n_embed,
+        r.codebook_crc32().unwrap(),
+    ))))
+    .unwrap();
+    r.set_bank_pixels(Some(Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: 2 })));
+    let g = frame(w, h, 10);
+    // the leftmost cell column: thinner than 3 cells, it waits
+    let missing: Vec<bool> = (0..w * h).map(|p| p % w < f).collect();
+    let out = r.complete(&g, &missing).unwrap();
+    assert!(r.trace().bank_draws.is_empty());
+    let palette: std::collections::HashSet<[u32; 3]> =
+        frames.iter().flat_map(|fr| fr.colour.data.iter().map(|c| c.map(f32::to_bits))).collect();
+    for p in 0..(w * h) as usize {
+        if missing[p] {
+            assert_eq!(out.depth_m.data[p], 0.0, "pixel {p}");
+            assert!(palette.contains(&out.colour.data[p].map(f32::to_bits)), "pixel {p}: a colour from no bank frame");
+        } else {
+            assert_eq!((out.colour.data[p], out.depth_m.data[p]), (g.colour.data[p], g.depth_m.data[p]));
+        }
+    }
+}
