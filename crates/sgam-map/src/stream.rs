@@ -340,10 +340,15 @@ impl TsdfMap {
             (k.cx.max(k.width as f32 - k.cx)) / k.fx.max(f32::MIN_POSITIVE),
             (k.cy.max(k.height as f32 - k.cy)) / k.fy.max(f32::MIN_POSITIVE),
         );
+        self.config.depth_max_m * (1.0 + tx * tx + ty * ty).sqrt() + self.reach_beyond_surface_m()
+    }
+
+    /// How far beyond the surfaces it sees a step may read or write: the truncation band (an
+    /// integration writes that far behind a surface) and two block diagonals (a changed block
+    /// re-meshes its lower neighbours, whose meshes read their upper ones).
+    fn reach_beyond_surface_m(&self) -> f32 {
         let c = &self.config;
-        c.depth_max_m * (1.0 + tx * tx + ty * ty).sqrt()
-            + c.trunc_voxels * c.voxel_size_m
-            + 2.0 * 3f32.sqrt() * c.block_size_m()
+        c.trunc_voxels * c.voxel_size_m + 2.0 * 3f32.sqrt() * c.block_size_m()
     }
 
     /// The part of space a step at `camera` may read or write, grown by `grow_m`: its frustum
@@ -357,7 +362,7 @@ impl TsdfMap {
         let k = camera.intrinsics;
         let c = &self.config;
         let band = c.trunc_voxels * c.voxel_size_m;
-        let grow = band + 2.0 * 3f32.sqrt() * c.block_size_m() + grow_m;
+        let grow = self.reach_beyond_surface_m() + grow_m;
         let (fx, fy) = (k.fx.max(f32::MIN_POSITIVE), k.fy.max(f32::MIN_POSITIVE));
         let (left, right) = (k.cx / fx, (k.width as f32 - k.cx) / fx);
         let (top, bottom) = (k.cy / fy, (k.height as f32 - k.cy) / fy);

@@ -14,7 +14,7 @@
 //!   tolerance: stray lines and sheets in the air, or holes dug under the ground.
 
 use sgam_core::ground::GroundPlane;
-use sgam_core::{Camera, RgbdFrame, Vec2};
+use sgam_core::{is_valid_depth as valid, Camera, RgbdFrame, Vec2};
 
 /// Side of a square patch, pixels.
 pub const PATCH_PX: usize = 32;
@@ -26,10 +26,6 @@ pub const PATCH_SHARE: f32 = 0.75;
 const HIST_BINS: usize = 8;
 /// Length of a patch's feature vector.
 pub const FEATURE_LEN: usize = 3 + 3 + 2 + HIST_BINS;
-
-fn valid(d: f32) -> bool {
-    d.is_finite() && d > 0.0
-}
 
 /// Which pixels of `frame` (at `camera`) the seed (`seed` at `seed_camera`) did not see: a
 /// pixel with depth whose point projects outside the seed's image, onto a seed pixel without

@@ -644,16 +644,8 @@ impl VqRefiner {
     /// argmin, or the code head's argmax): what a bank stores. Sides must be multiples of the
     /// downsampling factor.
     pub fn frame_codes(&mut self, frame: &RgbdFrame, intrinsics: &Intrinsics) -> Result<Vec<u32>, ModelError> {
-        let (w, h, f) = (frame.width() as usize, frame.height() as usize, self.config.downsample_factor());
-        if !w.is_multiple_of(f) || !h.is_multiple_of(f) {
-            return Err(ModelError::shape(
-                "a frame to encode",
-                format!("sides that are multiples of {f}"),
-                format!("{w}x{h}"),
-            ));
-        }
-        let mask = vec![false; w * h];
-        self.most_likely_codes(frame, &mask, intrinsics, [h / f, w / f])
+        let mask = vec![false; frame.width() as usize * frame.height() as usize];
+        self.frame_codes_missing(frame, &mask, intrinsics)
     }
 
     /// [`Self::frame_codes`] of a frame with pixels the model is told are missing (a real
@@ -927,7 +919,7 @@ fn paste_sources(
 ) {
     let (w, h) = (out.width() as usize, out.height() as usize);
     let (rows, cols) = (bank.rows as i64, bank.cols as i64);
-    let valid = |d: f32| d.is_finite() && d > 0.0;
+    let valid = sgam_core::is_valid_depth;
     let mut rest = &fill.sources[..];
     for draw in &fill.draws {
         let (hole, after) = rest.split_at(draw.cells.min(rest.len()));

@@ -213,7 +213,7 @@ pub fn seed_bank(
         )));
     }
     let missing = |fr: &sgam_core::RgbdFrame| -> Vec<bool> {
-        fr.depth_m.data.iter().map(|d| !(d.is_finite() && *d > 0.0)).collect()
+        fr.depth_m.data.iter().map(|d| !sgam_core::is_valid_depth(*d)).collect()
     };
     let mirror = mirrored(frame);
     let mirror_k = sgam_core::Intrinsics { cx: w as f32 - 1.0 - k.cx, ..*k };

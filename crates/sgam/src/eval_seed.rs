@@ -54,7 +54,7 @@ pub fn evaluate(a: &SeedArgs) -> Result<serde_json::Value> {
     }
     let seed_camera = seq.camera(0);
     let seed = seq.read_frame(0)?;
-    let mut depths: Vec<f32> = seed.depth_m.data.iter().copied().filter(|d| d.is_finite() && *d > 0.0).collect();
+    let mut depths: Vec<f32> = seed.depth_m.data.iter().copied().filter(|d| sgam_core::is_valid_depth(*d)).collect();
     if depths.is_empty() {
         bail!("{}: the seed frame has no valid depth", a.run.display());
     }
@@ -75,7 +75,7 @@ pub fn evaluate(a: &SeedArgs) -> Result<serde_json::Value> {
         let camera = seq.camera(i);
         let frame = seq.read_frame(i)?;
         let new = unseen_by_seed(&seed_camera, &seed, &camera, &frame, a.behind);
-        let with_depth = frame.depth_m.data.iter().filter(|d| d.is_finite() && **d > 0.0).count();
+        let with_depth = frame.depth_m.data.iter().filter(|d| sgam_core::is_valid_depth(**d)).count();
         new_share.push(new.iter().filter(|n| **n).count() as f64 / with_depth.max(1) as f64);
         new_patches.extend(patch_features(&frame, |p| new[p]));
         if let (Some(p), Some(r)) = (&plane, &range) {
