@@ -74,19 +74,26 @@ pub struct BankFill {
 pub struct BankPixels {
     /// The frames whose code grids the bank holds, each rolled ([`CodeBank::rolled`]).
     pub bases: Vec<sgam_core::RgbdFrame>,
-    /// Columns between two rolled copies.
-    pub roll_cells: usize,
+    /// Rows and columns between two rolled copies (0: not rolled that way).
+    pub roll_cells: [usize; 2],
 }
 
 impl BankPixels {
     /// The base frame and the cell `[row, column]` of it behind cell `cell` of bank frame
     /// `frame` of `bank` (laid out as [`CodeBank::rolled`] lays it out).
     pub fn source(&self, bank: &CodeBank, frame: usize, cell: usize) -> Option<(&sgam_core::RgbdFrame, [usize; 2])> {
-        let rolls = bank.cols.div_ceil(self.roll_cells.max(1)).max(1);
-        let base = self.bases.get(frame / rolls)?;
-        let roll = (frame % rolls) * self.roll_cells.max(1);
-        Some((base, [cell / bank.cols, (cell % bank.cols + roll) % bank.cols]))
+        let [rr, rc] = rolls(self.roll_cells, [bank.rows, bank.cols]);
+        let base = self.bases.get(frame / (rr * rc))?;
+        let (r, c) = ((frame % (rr * rc)) / rc, frame % rc);
+        let (dy, dx) = (r * self.roll_cells[0], c * self.roll_cells[1]);
+        Some((base, [(cell / bank.cols + dy) % bank.rows, (cell % bank.cols + dx) % bank.cols]))
     }
+}
+
+/// Copies per grid of [`CodeBank::rolled`] along rows and columns.
+fn rolls(roll_cells: [usize; 2], [rows, cols]: [usize; 2]) -> [usize; 2] {
+    let n = |step: usize, len: usize| if step == 0 { 1 } else { len.div_ceil(step).max(1) };
+    [n(roll_cells[0], rows), n(roll_cells[1], cols)]
 }
 
 /// Search settings of [`CodeBank::fill`].
@@ -118,23 +125,30 @@ impl Default for BankSearch {
 }
 
 impl CodeBank {
-    /// A bank of the code grids `grids` (`rows x cols` each), each also rolled left by every
-    /// multiple of `roll_cells` columns (bank frame `g * rolls + r` is grid `g` rolled by
-    /// `r * roll_cells`, `rolls = ceil(cols / roll_cells)`): with the search's sideways shifts
-    /// every offset of a grid is within reach. Rows stay in place (a row holds the ground at
-    /// one distance).
+    /// A bank of the code grids `grids` (`rows x cols` each), each also rolled up by every
+    /// multiple of `roll_cells[0]` rows and left by every multiple of `roll_cells[1]` columns (0:
+    /// not rolled that way). Bank frame `(g * rr + i) * rc + j` is grid `g` rolled by `i *
+    /// roll_cells[0]` rows and `j * roll_cells[1]` columns (`rr`, `rc`: the copies each way):
+    /// with the search's shifts every offset of a grid is within reach. A synthetic bank keeps
+    /// its rows in place (a row holds the ground at one distance); a seed's pixels are moved to
+    /// the depth around the hole, so any of its rows may fill it.
     pub fn rolled(
         grids: &[Vec<u32>],
         [rows, cols]: [usize; 2],
-        roll_cells: usize,
+        roll_cells: [usize; 2],
         n_embed: usize,
         codebook_crc32: u32,
     ) -> Self {
+        let [rr, rc] = rolls(roll_cells, [rows, cols]);
         let mut codes = Vec::new();
         for grid in grids.iter().filter(|g| g.len() == rows * cols) {
-            for roll in (0..cols).step_by(roll_cells.max(1)) {
-                for r in 0..rows {
-                    codes.extend((0..cols).map(|c| grid[r * cols + (c + roll) % cols] as u16));
+            for i in 0..rr {
+                for j in 0..rc {
+                    let (dy, dx) = (i * roll_cells[0], j * roll_cells[1]);
+                    for r in 0..rows {
+                        let row = (r + dy) % rows;
+                        codes.extend((0..cols).map(|c| grid[row * cols + (c + dx) % cols] as u16));
+                    }
                 }
             }
         }

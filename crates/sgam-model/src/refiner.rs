@@ -157,6 +157,9 @@ pub struct VqRefiner {
     looks: Option<Vec<[f32; 4]>>,
     /// The pixels behind the bank's codes: holes take them instead of the decoder's output.
     bank_pixels: Option<std::sync::Arc<BankPixels>>,
+    /// With the bank's pixels: holes take only their depth, and their colour is the decoder's
+    /// drawing of the quilted codes (a decoder adapted to the seed).
+    bank_colour_from_decoder: bool,
 }
 
 /// What the last [`VqRefiner::complete_at`] call chose (for tests and diagnostics).
@@ -189,6 +192,7 @@ impl VqRefiner {
             bank: None,
             looks: None,
             bank_pixels: None,
+            bank_colour_from_decoder: false,
         }
     }
 
@@ -308,7 +312,8 @@ impl VqRefiner {
                 (Some(bank), Some(looks)) => bank.fill(&mut codes, &cells, looks, &search, &mut self.rng),
                 _ => BankFill::default(),
             };
-            let mut out = if quilt_pixels {
+            let colour_from_decoder = quilt_pixels && self.bank_colour_from_decoder;
+            let mut out = if quilt_pixels && !colour_from_decoder {
                 // nothing is left to the decoder: every cell with a missing pixel is quilted now
                 // or waits, and the observed pixels are the guidance's
                 frame.clone()
@@ -323,9 +328,10 @@ impl VqRefiner {
             if let (Some(bank), Some(pixels), Some(looks)) =
                 (self.bank.as_deref(), self.bank_pixels.as_deref(), self.looks.as_deref())
             {
-                paste_sources(&mut out, missing, &fill, bank, pixels, f);
-                // the bands that wait are coloured from the seed too (their depth goes below)
-                if !fill.deferred.is_empty() {
+                paste_sources(&mut out, missing, &fill, bank, pixels, f, !colour_from_decoder);
+                // the bands that wait are coloured from the seed too (their depth goes below);
+                // with the decoder's colour they keep its drawing
+                if !fill.deferred.is_empty() && !colour_from_decoder {
                     let mut waiting = vec![false; cells.len()];
                     for &c in &fill.deferred {
                         waiting[c] = true;
@@ -333,7 +339,7 @@ impl VqRefiner {
                     let mut scratch = codes.clone();
                     let now = BankSearch { defer_thinner_than: 0, ..search };
                     let provisional = bank.fill(&mut scratch, &waiting, looks, &now, &mut self.rng);
-                    paste_sources(&mut out, missing, &provisional, bank, pixels, f);
+                    paste_sources(&mut out, missing, &provisional, bank, pixels, f, true);
                 }
             }
             // deferred cells keep their provisional colour and no depth: nothing is fused there
@@ -619,6 +625,13 @@ impl VqRefiner {
         }
         self.bank = bank;
         Ok(())
+    }
+
+    /// With the bank's pixels ([`Self::set_bank_pixels`]): `true` keeps the decoder's colour in
+    /// the holes and takes only the pixels' depth (for a decoder adapted to the seed, which draws
+    /// a quilted piece continuing what surrounds it); `false` (the default) pastes both.
+    pub fn set_bank_colour_from_decoder(&mut self, on: bool) {
+        self.bank_colour_from_decoder = on;
     }
 
     /// The pixels behind the bank's codes ([`BankPixels`]; the bank's frames must be the run's
@@ -908,7 +921,8 @@ impl Refiner for VqRefiner {
 /// edges (padding) are cut. A hole's depths are scaled to its surroundings: by the median
 /// ratio of the observed depth around it to the source's depth at the same places (the cells
 /// next to the hole's and their sources' neighbours), so a piece of the seed taken from
-/// nearer or farther sits at the depth of the surface it continues.
+/// nearer or farther sits at the depth of the surface it continues. Without `colour` only the
+/// depth is pasted.
 fn paste_sources(
     out: &mut RgbdFrame,
     missing: &[bool],
@@ -916,6 +930,7 @@ fn paste_sources(
     bank: &CodeBank,
     pixels: &BankPixels,
     f: usize,
+    colour: bool,
 ) {
     let (w, h) = (out.width() as usize, out.height() as usize);
     let (rows, cols) = (bank.rows as i64, bank.cols as i64);
@@ -972,7 +987,9 @@ fn paste_sources(
                     if y >= h || x >= w || by >= bh || bx >= bw || !missing[y * w + x] {
                         continue;
                     }
-                    out.colour.data[y * w + x] = base.colour.data[by * bw + bx];
+                    if colour {
+                        out.colour.data[y * w + x] = base.colour.data[by * bw + bx];
+                    }
                     out.depth_m.data[y * w + x] = base.depth_m.data[by * bw + bx] * scale;
                 }
             }

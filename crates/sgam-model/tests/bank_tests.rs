@@ -108,18 +108,26 @@ fn a_rolled_bank_and_its_pixels_agree_cell_for_cell() {
     let frames = [frame(32, 32, 40), frame(32, 32, 41)];
     let grids: Vec<Vec<u32>> = frames.iter().map(|f| r.frame_codes(f, &k).unwrap()).collect();
     let side = grids[0].len().isqrt();
-    let bank = CodeBank::rolled(&grids, [side, side], 3, r.config().n_embed, r.codebook_crc32().unwrap());
-    let rolls = side.div_ceil(3);
+    // rows rolled by 2, columns by 3
+    let bank = CodeBank::rolled(&grids, [side, side], [2, 3], r.config().n_embed, r.codebook_crc32().unwrap());
+    let rolls = side.div_ceil(2) * side.div_ceil(3);
     assert_eq!(bank.len(), 2 * rolls);
-    let pixels = BankPixels { bases: frames.to_vec(), roll_cells: 3 };
+    let pixels = BankPixels { bases: frames.to_vec(), roll_cells: [2, 3] };
+    let mut offsets = std::collections::HashSet::new();
     for f in 0..bank.len() {
         for cell in 0..side * side {
             let (base, [y, x]) = pixels.source(&bank, f, cell).unwrap();
             let g = if std::ptr::eq(base, &pixels.bases[0]) { 0 } else { 1 };
             assert_eq!(g, f / rolls, "frame {f}");
             assert_eq!(bank.frame(f)[cell] as u32, grids[g][y * side + x], "frame {f} cell {cell}");
+            if cell == 0 {
+                offsets.insert((g, y, x));
+            }
         }
     }
+    // every copy starts somewhere else: the rolls reach rows as well as columns
+    assert_eq!(offsets.len(), bank.len());
+    assert!(offsets.iter().any(|&(_, y, _)| y > 0) && offsets.iter().any(|&(_, _, x)| x > 0));
     assert!(pixels.source(&bank, bank.len(), 0).is_none());
 }
 
@@ -137,8 +145,9 @@ fn with_the_banks_pixels_every_hole_takes_them_even_one_pixel_at_its_surrounding
     let grids: Vec<Vec<u32>> = frames.iter().map(|f| r.frame_codes(f, &k).unwrap()).collect();
     let side = grids[0].len().isqrt();
     let f = 32 / side;
-    let bank = Arc::new(CodeBank::rolled(&grids, [side, side], 2, r.config().n_embed, r.codebook_crc32().unwrap()));
-    let pixels = Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: 2 });
+    let bank =
+        Arc::new(CodeBank::rolled(&grids, [side, side], [0, 2], r.config().n_embed, r.codebook_crc32().unwrap()));
+    let pixels = Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: [0, 2] });
     r.set_bank(Some(bank.clone())).unwrap();
     r.set_bank_pixels(Some(pixels.clone()));
     let mut g = frame(w, h, 9);
@@ -191,12 +200,12 @@ fn with_the_banks_pixels_a_band_that_waits_is_coloured_from_them_with_no_depth()
     r.set_bank(Some(Arc::new(CodeBank::rolled(
         &grids,
         [side, side],
-        2,
+        [0, 2],
         r.config().n_embed,
         r.codebook_crc32().unwrap(),
     ))))
     .unwrap();
-    r.set_bank_pixels(Some(Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: 2 })));
+    r.set_bank_pixels(Some(Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: [0, 2] })));
     let g = frame(w, h, 10);
     // the leftmost cell column: thinner than 3 cells, it waits
     let missing: Vec<bool> = (0..w * h).map(|p| p % w < f).collect();

@@ -24,6 +24,7 @@
 //! - Conventions follow `sgam-core`: OpenCV camera axes, `world_from_camera` poses, planar depth
 //!   in metres, sRGB colour in `[0, 1]`; every random draw comes from a seed passed in.
 
+pub mod adapt;
 pub mod bank;
 pub mod codepairs;
 mod config;

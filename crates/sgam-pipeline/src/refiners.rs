@@ -41,6 +41,10 @@ pub enum RefinerSpec {
         /// existed had none).
         #[serde(default)]
         bank: BankSpec,
+        /// Seconds of adapting the decoder to the seed before the loop ([`crate::adapt`]; 0 =
+        /// none). The adapted weights are the run folder's [`crate::adapt::ADAPTED_FILE`].
+        #[serde(default)]
+        adapt_s: f32,
     },
     /// [`NullRefiner`]: holes filled by push-pull (`fill`), or the guidance as it is.
     Null {
@@ -99,9 +103,11 @@ pub fn model_refiner(model: Option<&Path>, options: RefinerOptions) -> Result<Vq
 /// the seed's synthetic world).
 pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
     Ok(match spec {
-        RefinerSpec::Model { model, options, bank } => {
+        RefinerSpec::Model { model, options, bank, adapt_s } => {
             let mut refiner = model_refiner(model.as_deref(), *options)?;
             bank.load_into(&mut refiner, Some(seed))?;
+            // an adapted decoder draws the seed's look: it colours the quilted holes
+            refiner.set_bank_colour_from_decoder(*adapt_s > 0.0 && *bank == BankSpec::Seed);
             if let Some(b) = refiner.bank() {
                 let f = refiner.config().downsample_factor();
                 let (w, h) = (seed.frame.width() as usize, seed.frame.height() as usize);

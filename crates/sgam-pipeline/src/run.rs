@@ -36,6 +36,14 @@ pub trait RunObserver {
     fn started(&mut self, _resumed: bool, _total: usize, _done: usize, _seed: &Seed) -> Result<()> {
         Ok(())
     }
+    /// After each step of adapting the refiner to the seed ([`crate::adapt`]; new runs only).
+    fn adapting(&mut self, _progress: &crate::adapt::AdaptProgress) -> Result<()> {
+        Ok(())
+    }
+    /// When the adaptation is done.
+    fn adapted(&mut self, _outcome: &crate::adapt::AdaptOutcome) -> Result<()> {
+        Ok(())
+    }
     /// After step `index` (of `total` cameras) with its timings.
     fn after_step(&mut self, _index: usize, _total: usize, _gen: &mut RunGenerator, _t: &StepTimings) -> Result<()> {
         Ok(())
@@ -65,6 +73,50 @@ pub struct Generated {
     pub streaming: MapStreaming,
 }
 
+/// The refiner a run builds: with `adapt_s`, the model whose decoder [`crate::adapt`] tuned to the
+/// seed, in the run folder (adapted now for a new run, read back for a resumed one).
+fn adapted(
+    dir: &Path,
+    config: &RunConfig,
+    seed: &Seed,
+    resumed: bool,
+    observer: &mut dyn RunObserver,
+) -> Result<crate::RefinerSpec> {
+    let crate::RefinerSpec::Model { model, options, bank, adapt_s } = &config.refiner else {
+        return Ok(config.refiner.clone());
+    };
+    if *adapt_s <= 0.0 {
+        return Ok(config.refiner.clone());
+    }
+    let path = crate::adapt::adapted_path(dir);
+    if resumed {
+        if !path.is_file() {
+            return Err(PipelineError::Config(format!(
+                "{}: this run was adapted to its seed (--adapt {adapt_s}) and its adapted weights are missing; start a new run",
+                path.display()
+            )));
+        }
+    } else {
+        let mut failed = None;
+        let outcome = crate::adapt::adapt_to_seed(
+            model.as_deref(),
+            seed,
+            std::time::Duration::from_secs_f32(*adapt_s),
+            &path,
+            &mut |p| {
+                if failed.is_none() {
+                    failed = observer.adapting(&p).err();
+                }
+            },
+        )?;
+        if let Some(e) = failed {
+            return Err(e);
+        }
+        observer.adapted(&outcome)?;
+    }
+    Ok(crate::RefinerSpec::Model { model: Some(path), options: *options, bank: bank.clone(), adapt_s: *adapt_s })
+}
+
 /// Runs (or, with `resume`, continues) `config` in the run folder `dir`, writing a snapshot after
 /// the seed, every `snapshot_every` steps and at the end; `model_crc32` is stored with it.
 /// Stops after `stop_after` steps of this invocation when given.
@@ -77,9 +129,9 @@ pub fn generate(
     observer: &mut dyn RunObserver,
 ) -> Result<Generated> {
     let seed = config.seed.load()?;
-    let refiner = build_refiner(&config.refiner, &seed)?;
     // the path is checked before anything is written
     let total = config.trajectory.total_cameras(&seed.camera, config.steps)?;
+    let refiner = build_refiner(&adapted(dir, config, &seed, resume.is_some(), observer)?, &seed)?;
     let gconfig = config.generator_config();
     gconfig.tsdf.validate()?;
     let mut keyframes = Keyframes::new(dir, gconfig.source_radius_m, 96);

@@ -88,6 +88,7 @@ pub fn run(cmd: EvalCommand) -> Result<()> {
                             model: a.model.clone(),
                             no_refine: false,
                             bank: sgam_pipeline::BankSpec::Auto,
+                            adapt: 0.0,
                         },
                         ..Default::default()
                     };

@@ -54,9 +54,12 @@ pub fn grow(args: &WorldArgs, seed_scene: u64, kind: RefinerKind, label: &str, r
         // same with any bound): a new field of the run is compared without a change here
         let comparable = |r: &sgam_pipeline::RunConfig| sgam_pipeline::RunConfig {
             refiner: match &r.refiner {
-                sgam_pipeline::RefinerSpec::Model { options, bank, .. } => {
-                    sgam_pipeline::RefinerSpec::Model { model: None, options: *options, bank: bank.clone() }
-                }
+                sgam_pipeline::RefinerSpec::Model { options, bank, .. } => sgam_pipeline::RefinerSpec::Model {
+                    model: None,
+                    options: *options,
+                    bank: bank.clone(),
+                    adapt_s: 0.0,
+                },
                 other => other.clone(),
             },
             outputs: want.outputs,

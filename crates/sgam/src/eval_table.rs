@@ -204,6 +204,7 @@ fn row_settings(a: &TableArgs, row: &Row) -> RunSettings {
             model: if row.refiner == RefinerKind::Auto && !row.no_refine { a.model.clone() } else { None },
             no_refine: row.no_refine,
             bank: sgam_pipeline::BankSpec::Auto,
+            adapt: 0.0,
         },
         ..RunSettings::default()
     };

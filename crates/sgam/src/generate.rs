@@ -159,7 +159,7 @@ pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
 /// to, for the evaluation and benchmark commands that call a refiner directly.
 pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>> {
     Ok(match run.refiner_spec() {
-        RefinerSpec::Model { model, options, bank } => {
+        RefinerSpec::Model { model, options, bank, .. } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
             let seed = run.seed.spec()?;
             let bank = bank.resolve_for(&seed, model.is_none());

@@ -56,6 +56,22 @@ fn output_error(e: anyhow::Error) -> sgam_pipeline::PipelineError {
 }
 
 impl RunObserver for CliObserver<'_> {
+    fn adapting(&mut self, p: &sgam_pipeline::adapt::AdaptProgress) -> ObserverResult {
+        let pb = self.pb.get_or_insert_with(|| progress::bar(p.budget_s.ceil() as u64, "adapting to the seed (s)"));
+        pb.set_position((p.elapsed_s as u64).min(p.budget_s.ceil() as u64));
+        pb.set_message(format!("step {}, colour L1 {:.3}", p.step, p.l1_colour));
+        Ok(())
+    }
+
+    fn adapted(&mut self, o: &sgam_pipeline::adapt::AdaptOutcome) -> ObserverResult {
+        self.finish_progress();
+        eprintln!(
+            "adapted to the seed: {} steps in {:.0} s; the seed drawn from its own codes: {:.1} dB -> {:.1} dB",
+            o.steps, o.seconds, o.psnr_before_db, o.psnr_after_db
+        );
+        Ok(())
+    }
+
     fn after_seed(&mut self, generator: &mut RunGenerator) -> ObserverResult {
         if self.config.outputs.depth_png {
             write_depth_png(self.dir, 0, &generator.keyframes.frame(0)?.depth_m).map_err(output_error)?;
@@ -116,7 +132,11 @@ impl RunObserver for CliObserver<'_> {
 /// Says how far a seed from outside the synthetic world is from what the model learned (its
 /// reconstruction PSNR against [`sgam_pipeline::DOMAIN_PSNR_DB`]), and what to do about it.
 fn domain_check(config: &RunConfig, seed: &Seed) {
-    let sgam_pipeline::RefinerSpec::Model { model, bank, .. } = &config.refiner else { return };
+    let sgam_pipeline::RefinerSpec::Model { model, bank, adapt_s, .. } = &config.refiner else { return };
+    if *adapt_s > 0.0 {
+        // the adaptation has said how well the model draws the seed, before and after
+        return;
+    }
     match sgam_pipeline::seed_reconstruction_psnr(model.as_deref(), seed) {
         Ok(psnr) if psnr < sgam_pipeline::DOMAIN_PSNR_DB && *bank == sgam_pipeline::BankSpec::Seed => eprintln!(
             "note: the model reconstructs this seed at {psnr:.1} dB, far below the ~30 dB of the synthetic \

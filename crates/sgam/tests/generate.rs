@@ -366,6 +366,76 @@ fn a_run_bounded_by_max_map_mb_writes_its_world_as_tiles_and_as_one_mesh() {
     assert!(run.join("overview.png").is_file() && !run.join("map.bin").exists());
 }
 
+/// The `(before, after)` dB figures of the adaptation's report line.
+fn adapted_db(stderr: &str) -> Option<(f64, f64)> {
+    let line = stderr.lines().find(|l| l.starts_with("adapted to the seed"))?;
+    let tail = line.split(": ").last()?;
+    let mut n = tail.split(" dB").filter_map(|x| x.trim_start_matches(" ->").trim().parse::<f64>().ok());
+    Some((n.next()?, n.next()?))
+}
+
+#[test]
+fn adapt_tunes_the_decoder_to_a_real_seed_keeps_it_in_the_run_and_resume_uses_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let res = 64;
+    let camera = seed_camera(res);
+    let frame =
+        Renderer::new(&Scene::generate(78, &SceneConfig::default())).render(&camera, &RenderConfig::default()).frame;
+    let (rgb, depth) = (tmp.path().join("seed.png"), tmp.path().join("seed.npy"));
+    sgam_io::write_rgb_png(&rgb, &frame.colour).unwrap();
+    sgam_io::write_npy_f32(&depth, &frame.depth_m).unwrap();
+    let k = camera.intrinsics;
+    let intrinsics = format!("{},{},{},{}", k.fx, k.fy, k.cx, k.cy);
+    let seed_args =
+        ["--seed-rgb", rgb.to_str().unwrap(), "--seed-depth", depth.to_str().unwrap(), "--intrinsics", &intrinsics];
+    let run = tmp.path().join("run");
+    let mut args = vec![
+        "generate",
+        "--out",
+        run.to_str().unwrap(),
+        "--steps",
+        "4",
+        "--adapt",
+        "2",
+        "--stop-after",
+        "2",
+        "--no-video",
+    ];
+    args.extend(seed_args);
+    let out = sgam(&args);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    // the seed drawn from its own codes gets closer to the seed
+    let (before, after) = adapted_db(&err).unwrap_or_else(|| panic!("no adaptation report: {err}"));
+    assert!(after > before + 0.5, "{before} dB -> {after} dB");
+    let adapted = run.join("adapted.safetensors");
+    let bytes = std::fs::read(&adapted).unwrap();
+    assert_ne!(bytes, sgam_pipeline::BUNDLED_MODEL, "the adapted weights are the bundled ones");
+    // the resumed run loads them and does not adapt again
+    let out = sgam(&["generate", "--resume", run.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success() && adapted_db(&err).is_none(), "{err}");
+    assert_eq!(std::fs::read(&adapted).unwrap(), bytes);
+    let run_json: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(run_json["config"]["refiner"]["adapt_s"], 2.0, "run.json does not record the adaptation");
+    // a run whose adapted weights went missing is not resumed with others
+    let other = tmp.path().join("cut");
+    let mut args =
+        vec!["generate", "--out", other.to_str().unwrap(), "--steps", "4", "--adapt", "0.5", "--stop-after", "1"];
+    args.extend(seed_args);
+    ok(&args);
+    std::fs::remove_file(other.join("adapted.safetensors")).unwrap();
+    let out = sgam(&["generate", "--resume", other.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("adapted.safetensors"), "{err}");
+    // a stand-in refiner has nothing to adapt
+    let null_run = tmp.path().join("n");
+    let mut args = vec!["generate", "--out", null_run.to_str().unwrap(), "--refiner", "null", "--adapt", "5"];
+    args.extend(seed_args);
+    let out = sgam(&args);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--adapt"));
+}
+
 #[test]
 fn a_real_seed_grows_from_its_own_pixels_and_eval_seed_judges_it() {
     let tmp = tempfile::tempdir().unwrap();
