@@ -94,9 +94,6 @@ pub struct DecoderTuner {
     /// Completed steps.
     pub step: u64,
     device: Device,
-    /// Decode the codes generation gives an observed cell (the code head's most likely code,
-    /// invalid depth given as missing) instead of the encoder's nearest ones.
-    head_codes: bool,
 }
 
 impl std::fmt::Debug for DecoderTuner {
@@ -150,38 +147,11 @@ impl DecoderTuner {
             optim: adam(),
             step: 0,
             device,
-            head_codes: false,
         })
     }
 
-    /// Tunes on the codes [`crate::VqRefiner`] gives observed cells when the encoder has a code
-    /// head (its most likely code; pixels without a valid depth given as missing), not on the
-    /// encoder's nearest codes: what a decoder adapted to a seed is then asked to draw.
-    pub fn with_head_codes(mut self) -> Self {
-        self.head_codes = self.encoder.code_head.is_some();
-        self
-    }
-
     fn codes(&self, frames: &[&RgbdFrame], intrinsics: &[Intrinsics]) -> Result<Vec<u32>, ModelError> {
-        if !self.head_codes {
-            return Ok(target_codes(&self.encoder, &self.encoder_config, frames, intrinsics, &self.device)?.concat());
-        }
-        let masks: Vec<Vec<bool>> =
-            frames.iter().map(|f| f.depth_m.data.iter().map(|d| !sgam_core::is_valid_depth(*d)).collect()).collect();
-        let masks: Vec<Option<&[bool]>> = masks.iter().map(|m| Some(m.as_slice())).collect();
-        let x = crate::packing::pack_input(frames, &masks, intrinsics, &self.encoder_config, &self.device)?;
-        let logits = self.encoder.code_logits(x).ok_or(ModelError::MissingPart {
-            part: "a code head",
-            operation: "decoder tuning on the code head's codes",
-        })?;
-        let [b, k, h, w] = logits.dims();
-        let values = to_host(logits.permute([0, 2, 3, 1]).reshape([b * h * w, k]))?;
-        Ok(values
-            .chunks_exact(k)
-            .map(|row| {
-                row.iter().enumerate().fold((0, f32::MIN), |m, (i, &v)| if v > m.1 { (i, v) } else { m }).0 as u32
-            })
-            .collect())
+        Ok(target_codes(&self.encoder, &self.encoder_config, frames, intrinsics, &self.device)?.concat())
     }
 
     fn latent_shape(&self, frames: &[&RgbdFrame]) -> Result<[usize; 3], ModelError> {
@@ -347,16 +317,6 @@ impl DecoderTuner {
         t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
         t.step = state.step;
         Ok(t)
-    }
-
-    /// `frame` decoded from its own codes (the encoder's) by the tuned decoder.
-    pub fn decode_own_codes(&self, frame: &RgbdFrame, k: &Intrinsics) -> Result<RgbdFrame, ModelError> {
-        let refs = [frame];
-        let codes = self.codes(&refs, std::slice::from_ref(k))?;
-        let shape = self.latent_shape(&refs)?;
-        let model = self.model.valid();
-        let out = decode_rows(&model, model.quantize.lookup(&codes, &self.device), shape);
-        unpack(out, &self.model_config.depth)?.pop().ok_or(ModelError::EmptyBatch("decoding a frame's own codes"))
     }
 
     /// Named f32 weights of the tuned model.

@@ -299,7 +299,8 @@ impl VqRefiner {
             }
             _ => None,
         };
-        if sampler && n_missing > 0 && bank_fits {
+        // a model without a code head (adapted to a seed) quilts from a seed's pixels too
+        if (sampler || quilt_pixels) && n_missing > 0 && bank_fits {
             let mut codes = self.most_likely_codes(&work, &mask, &intrinsics, [ch, cw])?;
             self.code_looks()?;
             let (bank, looks) = (self.bank.as_deref(), self.looks.as_deref());
@@ -329,9 +330,10 @@ impl VqRefiner {
                 (self.bank.as_deref(), self.bank_pixels.as_deref(), self.looks.as_deref())
             {
                 paste_sources(&mut out, missing, &fill, bank, pixels, f, !colour_from_decoder);
-                // the bands that wait are coloured from the seed too (their depth goes below);
-                // with the decoder's colour they keep its drawing
-                if !fill.deferred.is_empty() && !colour_from_decoder {
+                // the bands that wait are coloured from the seed too (their depth goes below),
+                // also with the decoder's colour: the code head's codes there are not the seed's,
+                // and their drawing would reach later frames through the colour warp
+                if !fill.deferred.is_empty() {
                     let mut waiting = vec![false; cells.len()];
                     for &c in &fill.deferred {
                         waiting[c] = true;

@@ -573,6 +573,23 @@ impl Trainer {
         })
     }
 
+    /// A fresh session starting from the weights `tensors` (a whole model of `model_config`;
+    /// `train_config.init_weights` is not read).
+    pub fn with_weights(
+        model_config: &ModelConfig,
+        train_config: &TrainConfig,
+        tensors: &std::collections::BTreeMap<String, crate::params::NamedTensor>,
+    ) -> Result<Self, ModelError> {
+        let mut t = Self::new(model_config, &TrainConfig { init_weights: None, ..train_config.clone() })?;
+        t.model = freeze_for_stage(load_named(t.model.valid(), tensors, false, false)?, train_config.stage).train();
+        Ok(t)
+    }
+
+    /// The model as trained so far, for inference (no gradients).
+    pub fn inference_model(&self) -> VqModel {
+        self.model.valid()
+    }
+
     /// The first non-finite weight of the model or the discriminator, described.
     pub fn non_finite_weight(&self) -> Option<String> {
         let model = named_tensors(&self.model).into_iter().map(|(n, t)| (n, t, "model"));
@@ -678,13 +695,34 @@ impl Trainer {
 
     /// One optimisation step on the given pairs.
     pub fn step_on(&mut self, batch: &[TrainPair]) -> Result<StepReport, TrainError> {
+        self.step_with(batch, None)
+    }
+
+    /// One optimisation step on pairs seen through `intrinsics` (one per pair): a model with
+    /// ray channels ([`ModelConfig::ray_channels`]) needs them.
+    pub fn step_on_at(
+        &mut self,
+        batch: &[TrainPair],
+        intrinsics: &[sgam_core::Intrinsics],
+    ) -> Result<StepReport, TrainError> {
+        self.step_with(batch, Some(intrinsics))
+    }
+
+    fn step_with(
+        &mut self,
+        batch: &[TrainPair],
+        intrinsics: Option<&[sgam_core::Intrinsics]>,
+    ) -> Result<StepReport, TrainError> {
         let cfg = self.train_config.clone();
         let dev = self.device.clone().autodiff();
         let inputs: Vec<&RgbdFrame> = batch.iter().map(|p| &p.input).collect();
         let masks: Vec<Option<&[bool]>> = batch.iter().map(|p| Some(p.missing.as_slice())).collect();
         let targets: Vec<&RgbdFrame> = batch.iter().map(|p| &p.target).collect();
         let coding = self.model_config.depth;
-        let x = pack(&inputs, &masks, &coding, &dev)?;
+        let x = match intrinsics {
+            Some(k) => crate::packing::pack_input(&inputs, &masks, k, &self.model_config, &dev)?,
+            None => pack(&inputs, &masks, &coding, &dev)?,
+        };
         let target = pack_target(&targets, &coding, &dev)?;
         let step = self.step + 1;
         let use_quant = cfg.stage == Stage::Two || step > cfg.warmup_no_quant_steps;

@@ -1,12 +1,17 @@
-//! Adapting the refiner to a seed (`--adapt SECONDS`): before the loop, the decoder (and
-//! `post_quant_conv`) is fine-tuned to draw the seed's own codes as the seed's pixels, within a
-//! wall-time budget, on crops of the seed and its mirror image (colour and depth, L1).
+//! Adapting the refiner to a seed (`--adapt SECONDS`): before the loop, the whole autoencoder
+//! (encoder, codebook with the revival of unused codes, decoder) is fine-tuned on crops of the
+//! seed and its mirror image (stage 1's losses: L1 and the gradient term on colour and
+//! depth, the quantizer's), within a wall-time budget.
 //!
-//! Why the decoder: the bundled model has only seen the synthetic world, and its decoder draws
-//! a Google Earth seed at about 13 dB, so the seed's codes decoded are purple streaks. The
-//! encoder, codebook and code head stay as they are, so the codes a hole is given (the seed
-//! bank's, [`crate::bank::seed_bank`]) keep their meaning; only what they decode to changes.
-//! With `--bank seed` the adapted decoder colours the holes (the decoder sees the whole code
+//! Why the whole autoencoder: the bundled model has only seen the synthetic world. Its code head
+//! gives a Google Earth seed a handful of CLEVR codes, and the encoder's nearest codes are not
+//! much richer, so no decoder can draw the seed back from them (tuning the decoder alone for 60 s
+//! gave blurred blobs). Adapting the codebook to the seed's patches is what lets its codes hold
+//! the seed: 12.8 dB -> 24 dB in a minute on two cores (docs/STATUS.md).
+//!
+//! The adapted model has no code head (the head was trained on the old encoder's features): the
+//! refiner gives every observed cell its nearest code. With `--bank seed` the seed's codes under
+//! the adapted encoder fill the holes, the adapted decoder colours them (it sees the whole code
 //! grid, so a quilted piece is drawn continuing its surroundings) and the seed's pixels give
 //! their depth.
 //!
@@ -18,8 +23,8 @@ use std::time::{Duration, Instant};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Intrinsics, RgbdFrame};
-use sgam_model::decoder_tune::{DecoderTuneConfig, DecoderTuner};
 use sgam_model::params::{from_safetensors_bytes, save_safetensors, WeightPrecision};
+use sgam_model::train::{Stage, TrainConfig, TrainPair, Trainer};
 
 use crate::bank::mirrored;
 use crate::{PipelineError, Result, Seed, BUNDLED_MODEL};
@@ -36,6 +41,9 @@ const BATCH: usize = 2;
 /// Adam's learning rate: a few hundred steps is all a budget of minutes buys on two cores.
 const LR: f64 = 5e-4;
 
+/// Steps a code may go unused before the revival may give it a feature of the seed.
+const REVIVAL_WINDOW: u64 = 20;
+
 /// Where a run's adapted weights are.
 pub fn adapted_path(run_dir: &Path) -> PathBuf {
     run_dir.join(ADAPTED_FILE)
@@ -50,8 +58,8 @@ pub struct AdaptProgress {
     pub elapsed_s: f64,
     /// The budget, seconds.
     pub budget_s: f64,
-    /// Colour L1 of the last step (packed units, `[-1, 1]`).
-    pub l1_colour: f32,
+    /// PSNR of the last step's reconstruction (dB).
+    pub psnr_db: f32,
 }
 
 /// What an adaptation did.
@@ -61,15 +69,16 @@ pub struct AdaptOutcome {
     pub steps: u64,
     /// Wall time, seconds.
     pub seconds: f64,
-    /// PSNR of the seed's colour decoded from its own codes, before and after (dB).
+    /// PSNR of the seed's colour through the autoencoder (encoder, nearest codes, decoder),
+    /// before and after (dB).
     pub psnr_before_db: f64,
     /// See `psnr_before_db`.
     pub psnr_after_db: f64,
 }
 
-/// Fine-tunes the decoder of `model` (the bundled model when `None`) on `seed` for `budget`
-/// (at least one step) and writes the weights to `out` (f32, config embedded, atomically).
-/// `progress` is called after every step.
+/// Fine-tunes the autoencoder of `model` (the bundled model when `None`) on `seed` for `budget`
+/// (at least one step) and writes it, without its code head, to `out` (f32, config embedded,
+/// atomically). `progress` is called after every step.
 pub fn adapt_to_seed(
     model: Option<&Path>,
     seed: &Seed,
@@ -83,11 +92,8 @@ pub fn adapt_to_seed(
         None => BUNDLED_MODEL.to_vec(),
     };
     let device = sgam_model::default_device();
-    let (encoder, config) = sgam_model::refiner::load_model_bytes(&bytes, None, &device).map_err(model_error)?;
+    let (before, config) = sgam_model::refiner::load_model_bytes(&bytes, None, &device).map_err(model_error)?;
     let (tensors, _) = from_safetensors_bytes(&bytes).map_err(model_error)?;
-    let tc = DecoderTuneConfig { steps: u64::MAX, lr: LR, lr_decay_from: None, depth_weight: 1.0 };
-    let mut tuner = DecoderTuner::new(&config, &tensors, encoder, &config, &tc).map_err(model_error)?.with_head_codes();
-
     let f = config.downsample_factor();
     let (w, h) = (seed.frame.width() as usize, seed.frame.height() as usize);
     let side = ADAPT_CROP_PX.min(w).min(h) / f * f;
@@ -96,41 +102,59 @@ pub fn adapt_to_seed(
             "--adapt: the seed is {w}x{h} px; adapting needs at least {f} px each way"
         )));
     }
+    let tc = TrainConfig {
+        batch: BATCH,
+        crop: side as u32,
+        lr: LR,
+        kmeans_window: REVIVAL_WINDOW,
+        ckpt_every: 0,
+        val_every: 0,
+        ..TrainConfig::new(Stage::One, u64::MAX / 2)
+    };
+    let mut trainer = Trainer::with_weights(&config, &tc, &tensors).map_err(model_error)?;
     let k = seed.camera.intrinsics;
     let bases = [(seed.frame.clone(), k), (mirrored(&seed.frame), Intrinsics { cx: w as f32 - 1.0 - k.cx, ..k })];
-    // the seed's own codes decoded, whole, before and after
-    let whole: Vec<(RgbdFrame, Intrinsics)> = crops_of(&bases[0], w / f * f, h / f * f, [0, 0]).into_iter().collect();
-    let psnr_before_db = psnr(&tuner, &whole)?;
+    // the seed through the autoencoder, whole, before and after
+    let whole = crops_of(&bases[0], w / f * f, h / f * f, [0, 0]);
+    let psnr_before_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&before, &config, x))?;
     let mut rng = ChaCha8Rng::seed_from_u64(0x000A_DA97);
     let start = Instant::now();
     loop {
         let batch: Vec<(RgbdFrame, Intrinsics)> = (0..BATCH)
-            .flat_map(|_| {
+            .filter_map(|_| {
                 let base = &bases[rng.random_range(0..bases.len())];
                 let at = [rng.random_range(0..=(w - side) / f) * f, rng.random_range(0..=(h - side) / f) * f];
                 crops_of(base, side, side, at)
             })
             .collect();
-        let frames: Vec<&RgbdFrame> = batch.iter().map(|b| &b.0).collect();
         let ks: Vec<Intrinsics> = batch.iter().map(|b| b.1).collect();
-        let r = tuner.step_on(&frames, &ks).map_err(model_error)?;
+        let pairs: Vec<TrainPair> = batch
+            .into_iter()
+            .map(|(frame, _)| TrainPair { missing: vec![false; side * side], input: frame.clone(), target: frame })
+            .collect();
+        let r = trainer.step_on_at(&pairs, &ks).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         let elapsed = start.elapsed();
         progress(AdaptProgress {
-            step: tuner.step,
+            step: r.step,
             elapsed_s: elapsed.as_secs_f64(),
             budget_s: budget.as_secs_f64(),
-            l1_colour: r.l1_colour,
+            psnr_db: r.psnr,
         });
         if elapsed >= budget {
             break;
         }
     }
     let seconds = start.elapsed().as_secs_f64();
-    let psnr_after_db = psnr(&tuner, &whole)?;
-    let meta = sgam_model::refiner::weight_metadata(&config).map_err(model_error)?;
-    save_safetensors(&tuner.model, out, WeightPrecision::F32, Some(meta))
+    // the code head read the old encoder's features: the adapted model gives each cell its
+    // nearest code instead
+    let mut adapted = trainer.inference_model();
+    adapted.code_head = None;
+    let adapted_config = sgam_model::ModelConfig { code_head: false, code_tau: None, ..config.clone() };
+    let psnr_after_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&adapted, &adapted_config, x))?;
+    let meta = sgam_model::refiner::weight_metadata(&adapted_config).map_err(model_error)?;
+    save_safetensors(&adapted, out, WeightPrecision::F32, Some(meta))
         .map_err(|source| PipelineError::ModelLoad { path: Some(out.to_path_buf()), source })?;
-    Ok(AdaptOutcome { steps: tuner.step, seconds, psnr_before_db, psnr_after_db })
+    Ok(AdaptOutcome { steps: trainer.step, seconds, psnr_before_db, psnr_after_db })
 }
 
 /// The `cw x ch` crop of `base` at `[x, y]`, with its intrinsics.
@@ -153,19 +177,21 @@ fn crops_of(
     Some((out, Intrinsics { cx: k.cx - x0 as f32, cy: k.cy - y0 as f32, ..*k }))
 }
 
-/// PSNR (dB) of the colour the tuner's decoder draws from each frame's own codes.
-fn psnr(tuner: &DecoderTuner, frames: &[(RgbdFrame, Intrinsics)]) -> Result<f64> {
-    let mut se = 0.0f64;
-    let mut n = 0usize;
-    for (frame, k) in frames {
-        let decoded =
-            tuner.decode_own_codes(frame, k).map_err(|source| PipelineError::ModelLoad { path: None, source })?;
-        for (a, b) in decoded.colour.data.iter().zip(&frame.colour.data) {
-            for c in 0..3 {
-                se += f64::from(a[c] - b[c]).powi(2);
-            }
-            n += 3;
+/// PSNR (dB) of the colour `model` draws from the frame's nearest codes.
+fn psnr(
+    model: &sgam_model::VqModel,
+    config: &sgam_model::ModelConfig,
+    (frame, k): &(RgbdFrame, Intrinsics),
+) -> Result<f64> {
+    let device = sgam_model::default_device();
+    let (decoded, _) = sgam_model::generative::autoencode(model, config, &[frame], &[*k], &device)
+        .map_err(|source| PipelineError::ModelLoad { path: None, source })?;
+    let (mut se, mut n) = (0.0f64, 0usize);
+    for (a, b) in decoded.iter().flat_map(|d| d.colour.data.iter()).zip(&frame.colour.data) {
+        for c in 0..3 {
+            se += f64::from(a[c] - b[c]).powi(2);
         }
+        n += 3;
     }
     let mse = se / n.max(1) as f64;
     Ok(if mse > 0.0 { 10.0 * (1.0 / mse).log10() } else { f64::INFINITY })

@@ -384,13 +384,14 @@ pub struct RefinerSettings {
     /// synthetic world).
     #[arg(long, value_name = "none|bundled|seed|FILE", default_value_t = BankSpec::Auto)]
     pub bank: BankSpec,
-    /// Experimental: adapt the refiner to the seed for this many seconds before generating (0 =
-    /// off): its decoder is fine-tuned to draw the seed's codes as the seed's pixels (crops of
-    /// the seed and its mirror image). With --bank seed it then colours the quilted holes and
-    /// the seed's pixels give their depth; with --bank none it draws the model's codes. The
-    /// weights go to RUN/adapted.safetensors and --resume uses them. Measured on Google Earth
-    /// seeds (docs/STATUS.md) it does not yet beat the seed's own pixels: 60 s lift the seed's
-    /// reconstruction from 12.8 to 18.6 dB, but the holes it colours are blurred and striped.
+    /// Adapt the refiner to the seed for this many seconds before generating (0 = off): its
+    /// autoencoder (encoder, codebook, decoder) is fine-tuned on crops of the seed and its mirror
+    /// image, so that the seed's codes hold the seed (a Google Earth seed through the autoencoder:
+    /// 7-9 dB before, 22-25 dB after 60 s on two cores). With --bank seed the holes then take the
+    /// seed's codes under the adapted encoder, coloured by the adapted decoder, which blends
+    /// them into their surroundings, and the seed's pixels give their depth. Softer than the
+    /// seed's own pixels and not better on every seed (docs/STATUS.md), so off by default. The
+    /// weights go to RUN/adapted.safetensors; --resume uses them.
     #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
     pub adapt: f32,
 }

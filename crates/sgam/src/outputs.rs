@@ -59,14 +59,14 @@ impl RunObserver for CliObserver<'_> {
     fn adapting(&mut self, p: &sgam_pipeline::adapt::AdaptProgress) -> ObserverResult {
         let pb = self.pb.get_or_insert_with(|| progress::bar(p.budget_s.ceil() as u64, "adapting to the seed (s)"));
         pb.set_position((p.elapsed_s as u64).min(p.budget_s.ceil() as u64));
-        pb.set_message(format!("step {}, colour L1 {:.3}", p.step, p.l1_colour));
+        pb.set_message(format!("step {}, {:.1} dB", p.step, p.psnr_db));
         Ok(())
     }
 
     fn adapted(&mut self, o: &sgam_pipeline::adapt::AdaptOutcome) -> ObserverResult {
         self.finish_progress();
         eprintln!(
-            "adapted to the seed: {} steps in {:.0} s; the seed drawn from its own codes: {:.1} dB -> {:.1} dB",
+            "adapted to the seed: {} steps in {:.0} s; the seed through the autoencoder: {:.1} dB -> {:.1} dB",
             o.steps, o.seconds, o.psnr_before_db, o.psnr_after_db
         );
         Ok(())
