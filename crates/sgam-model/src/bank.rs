@@ -116,11 +116,24 @@ pub struct BankSearch {
     /// have to continue a sliver. Left unfilled (no depth), it widens step by step until a
     /// whole object fits. 0 fills every hole.
     pub defer_thinner_than: usize,
+    /// Objects whole or not at all ([`CodeBank::fill_with`] given which codes are plain): an
+    /// object of the bank frame (a 4-connected group of coloured cells) that observed plain
+    /// ground would cut is left out of the hole, whose cells there take the bank row's ground.
+    pub whole_objects: bool,
 }
 
 impl Default for BankSearch {
     fn default() -> Self {
-        Self { band: 2, max_shift_x: 2, max_shift_y: 1, top_k: 8, tau: 0.02, min_cells: 3, defer_thinner_than: 3 }
+        Self {
+            band: 2,
+            max_shift_x: 2,
+            max_shift_y: 1,
+            top_k: 8,
+            tau: 0.02,
+            min_cells: 3,
+            defer_thinner_than: 3,
+            whole_objects: false,
+        }
     }
 }
 
@@ -242,6 +255,20 @@ impl CodeBank {
         search: &BankSearch,
         rng: &mut impl Rng,
     ) -> BankFill {
+        self.fill_with(codes, missing, looks, None, search, rng)
+    }
+
+    /// [`Self::fill`], knowing which codes are plain ground (`plain[code]`) for
+    /// [`BankSearch::whole_objects`].
+    pub fn fill_with(
+        &self,
+        codes: &mut [u32],
+        missing: &[bool],
+        looks: &[[f32; 4]],
+        plain: Option<&[bool]>,
+        search: &BankSearch,
+        rng: &mut impl Rng,
+    ) -> BankFill {
         let (rows, cols) = (self.rows, self.cols);
         if self.is_empty() || codes.len() != rows * cols || missing.len() != rows * cols {
             return BankFill::default();
@@ -315,16 +342,69 @@ impl CodeBank {
                 (f, shift, s)
             };
             let grid = self.frame(frame);
-            for &i in &hole {
+            let source_of = |i: usize| {
                 let y = ((i / cols) as i32 + shift[0]).clamp(0, rows as i32 - 1) as usize;
                 let x = ((i % cols) as i32 + shift[1]).clamp(0, cols as i32 - 1) as usize;
-                codes[i] = grid[y * cols + x] as u32;
-                sources.push([i, frame, y * cols + x]);
+                y * cols + x
+            };
+            let cut = match plain {
+                Some(plain) if search.whole_objects => cut_objects(grid, [rows, cols], shift, codes, missing, plain),
+                _ => Vec::new(),
+            };
+            for &i in &hole {
+                let mut s = source_of(i);
+                if cut.get(s).copied().unwrap_or(false) {
+                    // the row's nearest ground in the bank frame, else the object's cell
+                    let (y, x) = (s / cols, s % cols);
+                    let plain = plain.unwrap_or(&[]);
+                    let ground = (1..cols)
+                        .flat_map(|d| [x.checked_sub(d), Some(x + d).filter(|&v| v < cols)])
+                        .find_map(|v| v.filter(|&v| plain.get(grid[y * cols + v] as usize).copied().unwrap_or(false)));
+                    if let Some(v) = ground {
+                        s = y * cols + v;
+                    }
+                }
+                codes[i] = grid[s] as u32;
+                sources.push([i, frame, s]);
             }
             draws.push(BankDraw { frame, shift, score, cells: hole.len() });
         }
         BankFill { draws, deferred, sources }
     }
+}
+
+/// Per cell of a bank frame `grid` placed with `shift` over a frame whose observed cells hold
+/// `codes`: whether it belongs to an object (a 4-connected group of cells whose codes are not
+/// `plain`) that an observed plain cell of the frame would cut, i.e. one of the object's cells
+/// lands on observed ground. Objects that land only on missing cells, on observed objects (they
+/// continue one) or outside the frame are whole and kept.
+fn cut_objects(
+    grid: &[u16],
+    [rows, cols]: [usize; 2],
+    shift: [i32; 2],
+    codes: &[u32],
+    missing: &[bool],
+    plain: &[bool],
+) -> Vec<bool> {
+    let is_plain = |c: u32| plain.get(c as usize).copied().unwrap_or(true);
+    let coloured: Vec<bool> = grid.iter().map(|&c| !is_plain(c as u32)).collect();
+    let mut cut = vec![false; rows * cols];
+    for object in components(&coloured, rows, cols) {
+        let on_ground = object.iter().any(|&b| {
+            let (y, x) = ((b / cols) as i32 - shift[0], (b % cols) as i32 - shift[1]);
+            if y < 0 || x < 0 || y >= rows as i32 || x >= cols as i32 {
+                return false;
+            }
+            let t = y as usize * cols + x as usize;
+            !missing[t] && is_plain(codes[t])
+        });
+        if on_ground {
+            for &b in &object {
+                cut[b] = true;
+            }
+        }
+    }
+    cut
 }
 
 /// Descriptor distance charged for a band cell that a shift moves out of the bank frame.
@@ -427,6 +507,67 @@ mod tests {
         assert!(CodeBank::from_bytes(&bytes[..bytes.len() - 2]).is_err());
         let big = CodeBank { n_embed: 5, ..bank };
         assert!(CodeBank::from_bytes(&big.to_bytes()).unwrap_err().to_string().contains("outside"));
+    }
+
+    #[test]
+    fn whole_objects_leave_out_an_object_that_observed_ground_would_cut_and_keep_the_rest() {
+        // one bank frame, 8 x 8, ground code 0 (plain), objects: code 1 at (2..4, 1..3), code 2
+        // at (5, 5..7), code 3 at (0, 6); codes 1-3 are coloured
+        let (rows, cols) = (8usize, 8usize);
+        let n = rows * cols;
+        let mut grid = vec![0u16; n];
+        for (y, x, c) in [(2, 1, 1), (2, 2, 1), (3, 1, 1), (3, 2, 1), (5, 5, 2), (5, 6, 2), (0, 6, 3)] {
+            grid[y * cols + x] = c;
+        }
+        let bank = CodeBank { rows, cols, n_embed: 8, codebook_crc32: 0, codes: grid.clone() };
+        let plain = [true, false, false, false, true, true, true, true];
+        // the frame: ground everywhere (code 4, plain) but an observed object (code 3) at (0, 6)
+        let mut codes = vec![4u32; n];
+        codes[6] = 3;
+        // the hole: rows 2..6, columns 2..8 — object 1 is half in it (column 1 is observed
+        // ground), object 2 wholly in it; object 3 lies on the observed object cell
+        let mut missing = vec![false; n];
+        for y in 2..6 {
+            for x in 2..8 {
+                missing[y * cols + x] = true;
+            }
+        }
+        missing[6] = false;
+        let search = BankSearch { top_k: 1, max_shift_x: 0, max_shift_y: 0, min_cells: 1, ..Default::default() };
+        let fill = |whole: bool| {
+            let mut c = codes.clone();
+            let mut rng = ChaCha8Rng::seed_from_u64(3);
+            let s = BankSearch { whole_objects: whole, ..search };
+            bank.fill_with(&mut c, &missing, &looks(8), Some(&plain), &s, &mut rng);
+            c
+        };
+        let cut = fill(false);
+        let whole = fill(true);
+        // without the rule the hole takes object 1's right half: a fragment
+        assert_eq!((cut[2 * cols + 2], cut[3 * cols + 2]), (1, 1));
+        // with it, that half is the row's ground, and the whole object 2 stays
+        assert!(plain[whole[2 * cols + 2] as usize] && plain[whole[3 * cols + 2] as usize], "{whole:?}");
+        assert_eq!((whole[5 * cols + 5], whole[5 * cols + 6]), (2, 2));
+        // every other hole cell is as without the rule
+        for i in (0..n).filter(|&i| missing[i] && ![2 * cols + 2, 3 * cols + 2].contains(&i)) {
+            assert_eq!(whole[i], cut[i], "cell {i}");
+        }
+        // observed cells are never written
+        for i in (0..n).filter(|&i| !missing[i]) {
+            assert_eq!(whole[i], codes[i], "cell {i}");
+        }
+        // an object that continues an observed object is kept: object 3 lands on the observed
+        // object cell (0, 6) and the cell below it is in a hole
+        let mut m2 = vec![false; n];
+        m2[cols + 6] = true;
+        let mut grid3 = vec![0u16; n];
+        grid3[6] = 3;
+        grid3[cols + 6] = 3;
+        let bank3 = CodeBank { rows, cols, n_embed: 8, codebook_crc32: 0, codes: grid3 };
+        let mut c = codes.clone();
+        let s = BankSearch { whole_objects: true, ..search };
+        bank3.fill_with(&mut c, &m2, &looks(8), Some(&plain), &s, &mut ChaCha8Rng::seed_from_u64(3));
+        assert_eq!(c[cols + 6], 3);
     }
 
     #[test]

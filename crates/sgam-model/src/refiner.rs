@@ -111,6 +111,10 @@ pub struct RefinerOptions {
     /// sampling.
     #[serde(default)]
     pub within_class_temperature: Option<f32>,
+    /// With a code bank: a bank object that observed ground would cut is left out of the hole
+    /// ([`crate::bank::BankSearch::whole_objects`]).
+    #[serde(default)]
+    pub whole_objects: bool,
 }
 
 fn default_cells_per_pass() -> usize {
@@ -135,6 +139,7 @@ impl Default for RefinerOptions {
             cells_per_pass: default_cells_per_pass(),
             max_passes: default_max_passes(),
             within_class_temperature: None,
+            whole_objects: false,
         }
     }
 }
@@ -302,15 +307,19 @@ impl VqRefiner {
         // a model without a code head (adapted to a seed) quilts from a seed's pixels too
         if (sampler || quilt_pixels) && n_missing > 0 && bank_fits {
             let mut codes = self.most_likely_codes(&work, &mask, &intrinsics, [ch, cw])?;
+            let plain = if self.options.whole_objects { Some(self.plain_codes()?.to_vec()) } else { None };
             self.code_looks()?;
             let (bank, looks) = (self.bank.as_deref(), self.looks.as_deref());
             // quilting pixels, every hole is filled: a one-cell hole keeps no decoder drawing
             let search = BankSearch {
                 min_cells: if quilt_pixels { 1 } else { BankSearch::default().min_cells },
+                whole_objects: self.options.whole_objects,
                 ..BankSearch::default()
             };
             let fill = match (bank, looks) {
-                (Some(bank), Some(looks)) => bank.fill(&mut codes, &cells, looks, &search, &mut self.rng),
+                (Some(bank), Some(looks)) => {
+                    bank.fill_with(&mut codes, &cells, looks, plain.as_deref(), &search, &mut self.rng)
+                }
                 _ => BankFill::default(),
             };
             let colour_from_decoder = quilt_pixels && self.bank_colour_from_decoder;

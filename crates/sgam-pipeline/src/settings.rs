@@ -469,6 +469,11 @@ pub struct SamplingSettings {
     /// guidance is kept where it was observed and the model fills only the missing pixels.
     #[arg(long)]
     pub regenerate_observed: bool,
+    /// With a code bank (--bank): an object of the matched bank frame that the ground already
+    /// seen would cut is left out of the hole (its cells take the bank row's ground), so the
+    /// hole holds whole objects, or objects that continue one already seen, and no fragments.
+    #[arg(long)]
+    pub whole_objects: bool,
     /// Run seed (sampling in the refiner): another seed grows another world.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -482,6 +487,7 @@ impl Default for SamplingSettings {
             within_temperature: DEFAULT_WITHIN_TEMPERATURE,
             cells_per_pass: DEFAULT_CELLS_PER_PASS,
             regenerate_observed: false,
+            whole_objects: false,
             seed: 0,
         }
     }
@@ -505,6 +511,7 @@ impl SamplingSettings {
             keep_observed: !self.regenerate_observed,
             cells_per_pass: self.cells_per_pass,
             within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
+            whole_objects: self.whole_objects,
             ..Default::default()
         }
     }

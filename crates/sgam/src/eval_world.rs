@@ -155,6 +155,12 @@ impl WorldArgs {
                 )),
                 sgam_pipeline::BankSpec::Seed => label.push_str("-bankseed"),
             }
+            if s.whole_objects {
+                label.push_str("-whole");
+            }
+            if r.adapt > 0.0 {
+                label.push_str(&format!("-adapt{}", r.adapt));
+            }
         }
         let p = &self.invented;
         if kind != RefinerKind::Oracle {
