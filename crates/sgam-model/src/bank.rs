@@ -116,9 +116,11 @@ pub struct BankSearch {
     /// have to continue a sliver. Left unfilled (no depth), it widens step by step until a
     /// whole object fits. 0 fills every hole.
     pub defer_thinner_than: usize,
-    /// Objects whole or not at all ([`CodeBank::fill_with`] given which codes are plain): an
-    /// object of the bank frame (a 4-connected group of coloured cells) that observed plain
-    /// ground would cut is left out of the hole, whose cells there take the bank row's ground.
+    /// Objects whole or not at all ([`CodeBank::fill_with`] given which codes are plain): the
+    /// best matches pay for the objects the hole would cut, and an object of the chosen bank
+    /// frame (a 4-connected group of coloured cells) that observed plain ground would cut is left
+    /// out of the hole, whose cells there take the bank row's ground. An ablation (docs/MODEL.md,
+    /// session 20): off by default.
     pub whole_objects: bool,
 }
 
@@ -319,6 +321,23 @@ impl CodeBank {
                         })
                     })
                     .collect();
+                if let (Some(plain), true) = (plain, search.whole_objects) {
+                    // of the best matches, those whose objects the hole would cut pay for it:
+                    // the draw prefers a placement whose objects fit the hole whole
+                    let m = CUT_CANDIDATES.min(scored.len());
+                    scored.select_nth_unstable_by(m - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                    scored.truncate(m);
+                    for c in scored.iter_mut() {
+                        let cut = cut_objects(self.frame(c.1), [rows, cols], c.2, codes, missing, plain);
+                        let shifted = |i: usize| {
+                            let y = ((i / cols) as i32 + c.2[0]).clamp(0, rows as i32 - 1) as usize;
+                            let x = ((i % cols) as i32 + c.2[1]).clamp(0, cols as i32 - 1) as usize;
+                            y * cols + x
+                        };
+                        let n = hole.iter().filter(|&&i| cut[shifted(i)]).count();
+                        c.0 += CUT_PENALTY * n as f32 / hole.len() as f32;
+                    }
+                }
                 let k = search.top_k.clamp(1, scored.len());
                 scored.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
                 scored[..k].sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
@@ -406,6 +425,13 @@ fn cut_objects(
     }
     cut
 }
+
+/// With [`BankSearch::whole_objects`]: how many of the best matches are scored for the objects
+/// they would cut ...
+const CUT_CANDIDATES: usize = 64;
+/// ... and what a hole whose every cell belongs to a cut object adds to a match's score (a
+/// band's descriptor distance is 0.05-0.3; the draw's temperature 0.02).
+const CUT_PENALTY: f32 = 0.2;
 
 /// Descriptor distance charged for a band cell that a shift moves out of the bank frame.
 const OUT_OF_FRAME: f32 = 1.0;
