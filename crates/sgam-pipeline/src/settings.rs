@@ -472,6 +472,8 @@ pub struct SamplingSettings {
     /// With a code bank (--bank): an object of the matched bank frame that the ground already
     /// seen would cut is left out of the hole (its cells take the bank row's ground), so the
     /// hole holds whole objects, or objects that continue one already seen, and no fragments.
+    /// The best matches also pay for the objects they would cut. An ablation: on training seeds
+    /// it grew fewer and smaller objects than the bank alone (docs/MODEL.md, session 20).
     #[arg(long)]
     pub whole_objects: bool,
     /// Run seed (sampling in the refiner): another seed grows another world.
