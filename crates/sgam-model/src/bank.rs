@@ -257,20 +257,20 @@ impl CodeBank {
         search: &BankSearch,
         rng: &mut impl Rng,
     ) -> BankFill {
-        self.fill_with(codes, missing, looks, None, search, rng)
+        self.fill_with(codes, missing, looks, &FillHints::default(), search, rng)
     }
 
-    /// [`Self::fill`], knowing which codes are plain ground (`plain[code]`) for
-    /// [`BankSearch::whole_objects`].
+    /// [`Self::fill`] with what the caller knows besides the codes ([`FillHints`]).
     pub fn fill_with(
         &self,
         codes: &mut [u32],
         missing: &[bool],
         looks: &[[f32; 4]],
-        plain: Option<&[bool]>,
+        hints: &FillHints<'_>,
         search: &BankSearch,
         rng: &mut impl Rng,
     ) -> BankFill {
+        let plain = hints.plain;
         let (rows, cols) = (self.rows, self.cols);
         if self.is_empty() || codes.len() != rows * cols || missing.len() != rows * cols {
             return BankFill::default();
@@ -321,6 +321,15 @@ impl CodeBank {
                         })
                     })
                     .collect();
+                if let Some(distance) = hints.band_distance {
+                    // the best matches by the codes' looks, ranked again by the band's pixels
+                    let m = PIXEL_CANDIDATES.min(scored.len());
+                    scored.select_nth_unstable_by(m - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                    scored.truncate(m);
+                    for c in scored.iter_mut() {
+                        c.0 = distance(c.1, c.2, &band);
+                    }
+                }
                 if let (Some(plain), true) = (plain, search.whole_objects) {
                     // of the best matches, those whose objects the hole would cut pay for it:
                     // the draw prefers a placement whose objects fit the hole whole
@@ -425,6 +434,30 @@ fn cut_objects(
     }
     cut
 }
+
+/// What [`CodeBank::fill_with`] may know besides the codes.
+#[derive(Default, Clone, Copy)]
+pub struct FillHints<'a> {
+    /// Which codes are plain ground (`plain[code]`), for [`BankSearch::whole_objects`].
+    pub plain: Option<&'a [bool]>,
+    /// The distance between a hole's border band (its cells) and bank frame `frame` shifted by
+    /// `shift`, measured on pixels (a seed's bank, whose pixels are known): the best matches by
+    /// the codes' looks are ranked again by it, as image quilting matches the overlap's pixels.
+    #[allow(clippy::type_complexity)]
+    pub band_distance: Option<&'a (dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)>,
+}
+
+impl std::fmt::Debug for FillHints<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FillHints")
+            .field("plain", &self.plain.map(<[bool]>::len))
+            .field("band_distance", &self.band_distance.is_some())
+            .finish()
+    }
+}
+
+/// With [`FillHints::band_distance`]: how many of the best matches by looks are ranked again.
+const PIXEL_CANDIDATES: usize = 64;
 
 /// With [`BankSearch::whole_objects`]: how many of the best matches are scored for the objects
 /// they would cut ...
@@ -564,7 +597,14 @@ mod tests {
             let mut c = codes.clone();
             let mut rng = ChaCha8Rng::seed_from_u64(3);
             let s = BankSearch { whole_objects: whole, ..search };
-            bank.fill_with(&mut c, &missing, &looks(8), Some(&plain), &s, &mut rng);
+            bank.fill_with(
+                &mut c,
+                &missing,
+                &looks(8),
+                &FillHints { plain: Some(&plain), ..Default::default() },
+                &s,
+                &mut rng,
+            );
             c
         };
         let cut = fill(false);
@@ -592,8 +632,50 @@ mod tests {
         let bank3 = CodeBank { rows, cols, n_embed: 8, codebook_crc32: 0, codes: grid3 };
         let mut c = codes.clone();
         let s = BankSearch { whole_objects: true, ..search };
-        bank3.fill_with(&mut c, &m2, &looks(8), Some(&plain), &s, &mut ChaCha8Rng::seed_from_u64(3));
+        let hints = FillHints { plain: Some(&plain), ..Default::default() };
+        bank3.fill_with(&mut c, &m2, &looks(8), &hints, &s, &mut ChaCha8Rng::seed_from_u64(3));
         assert_eq!(c[cols + 6], 3);
+    }
+
+    #[test]
+    fn a_band_distance_on_pixels_decides_between_frames_whose_codes_look_alike() {
+        let (rows, cols) = (6usize, 6usize);
+        let n = rows * cols;
+        // two bank frames with the same codes: the looks cannot tell them apart
+        let f: Vec<u16> = (0..n as u16).collect();
+        let bank = CodeBank { rows, cols, n_embed: 64, codebook_crc32: 0, codes: [f.clone(), f.clone()].concat() };
+        let mut missing = vec![false; n];
+        for i in [14, 15, 20, 21] {
+            missing[i] = true;
+        }
+        // the pixels say frame 1 continues the band, frame 0 does not
+        let distance = |frame: usize, _shift: [i32; 2], band: &[usize]| {
+            assert!(!band.is_empty() && band.iter().all(|&c| !missing[c]));
+            if frame == 1 {
+                0.0
+            } else {
+                0.5
+            }
+        };
+        let hints = FillHints { band_distance: Some(&distance), ..Default::default() };
+        let search = BankSearch { min_cells: 1, ..Default::default() };
+        for seed in 0..16 {
+            let mut codes: Vec<u32> = f.iter().map(|&c| c as u32).collect();
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let fill = bank.fill_with(&mut codes, &missing, &looks(64), &hints, &search, &mut rng);
+            assert_eq!(fill.draws.len(), 1);
+            assert_eq!(fill.draws[0].frame, 1, "seed {seed}: {:?}", fill.draws);
+            assert_eq!(fill.draws[0].score, 0.0);
+        }
+        // without it, both frames are drawn
+        let frames: std::collections::HashSet<usize> = (0..16)
+            .map(|seed| {
+                let mut codes: Vec<u32> = f.iter().map(|&c| c as u32).collect();
+                bank.fill(&mut codes, &missing, &looks(64), &search, &mut ChaCha8Rng::seed_from_u64(seed)).draws[0]
+                    .frame
+            })
+            .collect();
+        assert_eq!(frames.len(), 2);
     }
 
     #[test]

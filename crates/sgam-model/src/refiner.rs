@@ -12,7 +12,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
-use crate::bank::{BankDraw, BankFill, BankPixels, BankSearch, CodeBank};
+use crate::bank::{BankDraw, BankFill, BankPixels, BankSearch, CodeBank, FillHints};
 use crate::config::ModelConfig;
 use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
@@ -318,7 +318,16 @@ impl VqRefiner {
             };
             let fill = match (bank, looks) {
                 (Some(bank), Some(looks)) => {
-                    bank.fill_with(&mut codes, &cells, looks, plain.as_deref(), &search, &mut self.rng)
+                    // with the bank's pixels, the best matches are ranked again on the band's pixels
+                    let pixels = self.bank_pixels.as_deref().filter(|_| quilt_pixels);
+                    let distance = |frame: usize, shift: [i32; 2], band: &[usize]| {
+                        pixels.map_or(0.0, |p| band_pixel_distance(&work, bank, p, f, frame, shift, band))
+                    };
+                    let hints = FillHints {
+                        plain: plain.as_deref(),
+                        band_distance: pixels.map(|_| &distance as &(dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)),
+                    };
+                    bank.fill_with(&mut codes, &cells, looks, &hints, &search, &mut self.rng)
                 }
                 _ => BankFill::default(),
             };
@@ -923,6 +932,48 @@ impl Refiner for VqRefiner {
         // options' seed too: a plain XOR cancelled them (every --seed grew the same world)
         self.rng = ChaCha8Rng::seed_from_u64(self.options.seed.wrapping_mul(0xD1B5_4A32_D192_ED03) ^ guidance.seed);
         self.complete_at(&guidance.frame, &guidance.missing, Some(&guidance.camera.intrinsics))
+    }
+}
+
+/// Mean colour distance (L1 over R, G, B, divided by 3) between the pixels of the border band
+/// cells `band` of `frame` (padded to the grid) and the pixels behind bank frame `bank_frame`
+/// shifted by `shift`, `f x f` per cell; a cell the shift moves out of the bank frame counts 1.
+fn band_pixel_distance(
+    frame: &RgbdFrame,
+    bank: &CodeBank,
+    pixels: &BankPixels,
+    f: usize,
+    bank_frame: usize,
+    shift: [i32; 2],
+    band: &[usize],
+) -> f32 {
+    let w = frame.width() as usize;
+    let (mut sum, mut n) = (0.0f32, 0usize);
+    for &cell in band {
+        let (y, x) = ((cell / bank.cols) as i32 + shift[0], (cell % bank.cols) as i32 + shift[1]);
+        if y < 0 || x < 0 || y >= bank.rows as i32 || x >= bank.cols as i32 {
+            sum += (f * f) as f32;
+            n += f * f;
+            continue;
+        }
+        let Some((base, [sy, sx])) = pixels.source(bank, bank_frame, y as usize * bank.cols + x as usize) else {
+            continue;
+        };
+        let bw = base.width() as usize;
+        let (cy, cx) = (cell / bank.cols, cell % bank.cols);
+        for dy in 0..f {
+            for dx in 0..f {
+                let (a, b) = ((cy * f + dy) * w + cx * f + dx, (sy * f + dy) * bw + sx * f + dx);
+                let (Some(p), Some(q)) = (frame.colour.data.get(a), base.colour.data.get(b)) else { continue };
+                sum += ((p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()) / 3.0;
+                n += 1;
+            }
+        }
+    }
+    if n == 0 {
+        1.0
+    } else {
+        sum / n as f32
     }
 }
 
