@@ -323,9 +323,7 @@ impl CodeBank {
                     .collect();
                 if let Some(distance) = hints.band_distance {
                     // the best matches by the codes' looks, ranked again by the band's pixels
-                    let m = PIXEL_CANDIDATES.min(scored.len());
-                    scored.select_nth_unstable_by(m - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                    scored.truncate(m);
+                    keep_best(&mut scored, PIXEL_CANDIDATES);
                     for c in scored.iter_mut() {
                         c.0 = distance(c.1, c.2, &band);
                     }
@@ -333,23 +331,16 @@ impl CodeBank {
                 if let (Some(plain), true) = (plain, search.whole_objects) {
                     // of the best matches, those whose objects the hole would cut pay for it:
                     // the draw prefers a placement whose objects fit the hole whole
-                    let m = CUT_CANDIDATES.min(scored.len());
-                    scored.select_nth_unstable_by(m - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                    scored.truncate(m);
+                    keep_best(&mut scored, CUT_CANDIDATES);
                     for c in scored.iter_mut() {
                         let cut = cut_objects(self.frame(c.1), [rows, cols], c.2, codes, missing, plain);
-                        let shifted = |i: usize| {
-                            let y = ((i / cols) as i32 + c.2[0]).clamp(0, rows as i32 - 1) as usize;
-                            let x = ((i % cols) as i32 + c.2[1]).clamp(0, cols as i32 - 1) as usize;
-                            y * cols + x
-                        };
-                        let n = hole.iter().filter(|&&i| cut[shifted(i)]).count();
+                        let n = hole.iter().filter(|&&i| cut[shifted_cell(i, c.2, [rows, cols])]).count();
                         c.0 += CUT_PENALTY * n as f32 / hole.len() as f32;
                     }
                 }
                 let k = search.top_k.clamp(1, scored.len());
-                scored.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                scored[..k].sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                keep_best(&mut scored, k);
+                scored.sort_by(by_score);
                 // softmax over the k best by score, at temperature `search.tau`: a hole whose
                 // border continues one bank frame (an object re-rendered from an earlier step)
                 // takes that frame; a hole on plain ground draws among many near-equal matches
@@ -370,17 +361,12 @@ impl CodeBank {
                 (f, shift, s)
             };
             let grid = self.frame(frame);
-            let source_of = |i: usize| {
-                let y = ((i / cols) as i32 + shift[0]).clamp(0, rows as i32 - 1) as usize;
-                let x = ((i % cols) as i32 + shift[1]).clamp(0, cols as i32 - 1) as usize;
-                y * cols + x
-            };
             let cut = match plain {
                 Some(plain) if search.whole_objects => cut_objects(grid, [rows, cols], shift, codes, missing, plain),
                 _ => Vec::new(),
             };
             for &i in &hole {
-                let mut s = source_of(i);
+                let mut s = shifted_cell(i, shift, [rows, cols]);
                 if cut.get(s).copied().unwrap_or(false) {
                     // the row's nearest ground in the bank frame, else the object's cell
                     let (y, x) = (s / cols, s % cols);
@@ -399,6 +385,28 @@ impl CodeBank {
         }
         BankFill { draws, deferred, sources }
     }
+}
+
+/// A match's order: lower score first, then the lower frame (a deterministic order for ties).
+fn by_score(a: &(f32, usize, [i32; 2]), b: &(f32, usize, [i32; 2])) -> std::cmp::Ordering {
+    a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+}
+
+/// Keeps the `n` best of `scored` (in no particular order).
+fn keep_best(scored: &mut Vec<(f32, usize, [i32; 2])>, n: usize) {
+    let n = n.clamp(1, scored.len().max(1));
+    if scored.len() > n {
+        scored.select_nth_unstable_by(n - 1, by_score);
+        scored.truncate(n);
+    }
+}
+
+/// The cell of a bank frame placed with `shift` under cell `i` of the frame (clamped to the
+/// bank frame).
+fn shifted_cell(i: usize, shift: [i32; 2], [rows, cols]: [usize; 2]) -> usize {
+    let y = ((i / cols) as i32 + shift[0]).clamp(0, rows as i32 - 1) as usize;
+    let x = ((i % cols) as i32 + shift[1]).clamp(0, cols as i32 - 1) as usize;
+    y * cols + x
 }
 
 /// Per cell of a bank frame `grid` placed with `shift` over a frame whose observed cells hold

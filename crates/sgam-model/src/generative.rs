@@ -333,25 +333,24 @@ pub fn reveal_cells(pair: &CodePair, decoded: &RgbdFrame, cells: &[usize], facto
     out
 }
 
-/// The frozen decoder's output `[B, 4, H, W]` for codebook rows `[B h w, D]` (row-major cells)
-/// of latent shape `[B, h, w]`.
 /// `frames` drawn by `model` from their own nearest codes (encoder, argmin over the codebook,
-/// decoder): the autoencoder's reconstruction, with the codes.
+/// decoder): the autoencoder's reconstruction.
 pub fn autoencode(
     model: &VqModel,
     config: &ModelConfig,
     frames: &[&RgbdFrame],
     intrinsics: &[Intrinsics],
     device: &Device,
-) -> Result<(Vec<RgbdFrame>, Vec<Vec<u32>>), ModelError> {
-    let codes = target_codes(model, config, frames, intrinsics, device)?;
+) -> Result<Vec<RgbdFrame>, ModelError> {
+    let codes = target_codes(model, config, frames, intrinsics, device)?.concat();
     let f = config.downsample_factor();
     let [h, w] = frames.first().map_or([0, 0], |fr| [fr.height() as usize / f, fr.width() as usize / f]);
-    let z = model.quantize.lookup(&codes.concat(), device);
-    let out = unpack(decode_rows(model, z, [frames.len(), h, w]), &config.depth)?;
-    Ok((out, codes))
+    let z = model.quantize.lookup(&codes, device);
+    unpack(decode_rows(model, z, [frames.len(), h, w]), &config.depth)
 }
 
+/// The frozen decoder's output `[B, 4, H, W]` for codebook rows `[B h w, D]` (row-major cells)
+/// of latent shape `[B, h, w]`.
 pub(crate) fn decode_rows(model: &VqModel, rows: Tensor<2>, [b, h, w]: [usize; 3]) -> Tensor<4> {
     let [_, d] = rows.dims();
     model.decode(rows.reshape([b, h, w, d]).permute([0, 3, 1, 2]))

@@ -319,13 +319,16 @@ impl VqRefiner {
             let fill = match (bank, looks) {
                 (Some(bank), Some(looks)) => {
                     // with the bank's pixels, the best matches are ranked again on the band's pixels
-                    let pixels = self.bank_pixels.as_deref().filter(|_| quilt_pixels);
-                    let distance = |frame: usize, shift: [i32; 2], band: &[usize]| {
-                        pixels.map_or(0.0, |p| band_pixel_distance(&work, bank, p, f, frame, shift, band))
-                    };
+                    let distance = self.bank_pixels.as_deref().filter(|_| quilt_pixels).map(|p| {
+                        move |frame: usize, shift: [i32; 2], band: &[usize]| {
+                            band_pixel_distance(&work, bank, p, f, frame, shift, band)
+                        }
+                    });
                     let hints = FillHints {
                         plain: plain.as_deref(),
-                        band_distance: pixels.map(|_| &distance as &(dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)),
+                        band_distance: distance
+                            .as_ref()
+                            .map(|d| d as &(dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)),
                     };
                     bank.fill_with(&mut codes, &cells, looks, &hints, &search, &mut self.rng)
                 }

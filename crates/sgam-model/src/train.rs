@@ -556,9 +556,19 @@ impl Trainer {
         if let Some(path) = &train_config.init_weights {
             model = load_weights(model, path)?;
         }
+        Ok(Self::with_model(model_config, train_config, model, device))
+    }
+
+    /// A fresh session starting from `model` (of `model_config`; `train_config.init_weights` is
+    /// not read).
+    pub fn from_model(model_config: &ModelConfig, train_config: &TrainConfig, model: VqModel) -> Self {
+        Self::with_model(model_config, train_config, model, crate::default_device())
+    }
+
+    fn with_model(model_config: &ModelConfig, train_config: &TrainConfig, model: VqModel, device: Device) -> Self {
         let model = freeze_for_stage(model, train_config.stage).train();
         let disc = Discriminator::new(&train_config.disc, train_config.seed, &device).train();
-        Ok(Self {
+        Self {
             model_config: model_config.clone(),
             train_config: train_config.clone(),
             model,
@@ -570,19 +580,7 @@ impl Trainer {
             usage: CodebookUsage::new(model_config.n_embed, 0),
             buffer: FeatureBuffer::new(model_config.embed_dim, train_config.feature_buffer),
             device,
-        })
-    }
-
-    /// A fresh session starting from the weights `tensors` (a whole model of `model_config`;
-    /// `train_config.init_weights` is not read).
-    pub fn with_weights(
-        model_config: &ModelConfig,
-        train_config: &TrainConfig,
-        tensors: &std::collections::BTreeMap<String, crate::params::NamedTensor>,
-    ) -> Result<Self, ModelError> {
-        let mut t = Self::new(model_config, &TrainConfig { init_weights: None, ..train_config.clone() })?;
-        t.model = freeze_for_stage(load_named(t.model.valid(), tensors, false, false)?, train_config.stage).train();
-        Ok(t)
+        }
     }
 
     /// The model as trained so far, for inference (no gradients).

@@ -23,7 +23,7 @@ use std::time::{Duration, Instant};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Intrinsics, RgbdFrame};
-use sgam_model::params::{from_safetensors_bytes, save_safetensors, WeightPrecision};
+use sgam_model::params::{save_safetensors, WeightPrecision};
 use sgam_model::train::{Stage, TrainConfig, TrainPair, Trainer};
 
 use crate::bank::mirrored;
@@ -32,7 +32,7 @@ use crate::{PipelineError, Result, Seed, BUNDLED_MODEL};
 /// The adapted weights in a run folder.
 pub const ADAPTED_FILE: &str = "adapted.safetensors";
 
-/// Side of the square crops the decoder is tuned on (the seed's shorter side when smaller).
+/// Side of the square crops the autoencoder is tuned on (the seed's shorter side when smaller).
 pub const ADAPT_CROP_PX: usize = 256;
 
 /// Crops per step.
@@ -93,7 +93,6 @@ pub fn adapt_to_seed(
     };
     let device = sgam_model::default_device();
     let (before, config) = sgam_model::refiner::load_model_bytes(&bytes, None, &device).map_err(model_error)?;
-    let (tensors, _) = from_safetensors_bytes(&bytes).map_err(model_error)?;
     let f = config.downsample_factor();
     let (w, h) = (seed.frame.width() as usize, seed.frame.height() as usize);
     let side = ADAPT_CROP_PX.min(w).min(h) / f * f;
@@ -111,12 +110,12 @@ pub fn adapt_to_seed(
         val_every: 0,
         ..TrainConfig::new(Stage::One, u64::MAX / 2)
     };
-    let mut trainer = Trainer::with_weights(&config, &tc, &tensors).map_err(model_error)?;
     let k = seed.camera.intrinsics;
     let bases = [(seed.frame.clone(), k), (mirrored(&seed.frame), Intrinsics { cx: w as f32 - 1.0 - k.cx, ..k })];
     // the seed through the autoencoder, whole, before and after
     let whole = crops_of(&bases[0], w / f * f, h / f * f, [0, 0]);
     let psnr_before_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&before, &config, x))?;
+    let mut trainer = Trainer::from_model(&config, &tc, before);
     let mut rng = ChaCha8Rng::seed_from_u64(0x000A_DA97);
     let start = Instant::now();
     loop {
@@ -184,15 +183,7 @@ fn psnr(
     (frame, k): &(RgbdFrame, Intrinsics),
 ) -> Result<f64> {
     let device = sgam_model::default_device();
-    let (decoded, _) = sgam_model::generative::autoencode(model, config, &[frame], &[*k], &device)
+    let decoded = sgam_model::generative::autoencode(model, config, &[frame], &[*k], &device)
         .map_err(|source| PipelineError::ModelLoad { path: None, source })?;
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for (a, b) in decoded.iter().flat_map(|d| d.colour.data.iter()).zip(&frame.colour.data) {
-        for c in 0..3 {
-            se += f64::from(a[c] - b[c]).powi(2);
-        }
-        n += 3;
-    }
-    let mse = se / n.max(1) as f64;
-    Ok(if mse > 0.0 { 10.0 * (1.0 / mse).log10() } else { f64::INFINITY })
+    Ok(decoded.first().and_then(|d| sgam_metrics::psnr(&d.colour, &frame.colour, None)).unwrap_or(0.0))
 }

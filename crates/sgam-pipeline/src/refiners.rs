@@ -41,8 +41,8 @@ pub enum RefinerSpec {
         /// existed had none).
         #[serde(default)]
         bank: BankSpec,
-        /// Seconds of adapting the decoder to the seed before the loop ([`crate::adapt`]; 0 =
-        /// none). The adapted weights are the run folder's [`crate::adapt::ADAPTED_FILE`].
+        /// Seconds of adapting the autoencoder to the seed before the loop ([`crate::adapt`]; 0
+        /// = none). The adapted weights are the run folder's [`crate::adapt::ADAPTED_FILE`].
         #[serde(default)]
         adapt_s: f32,
     },
@@ -106,7 +106,7 @@ pub fn build_refiner(spec: &RefinerSpec, seed: &Seed) -> Result<AnyRefiner> {
         RefinerSpec::Model { model, options, bank, adapt_s } => {
             let mut refiner = model_refiner(model.as_deref(), *options)?;
             bank.load_into(&mut refiner, Some(seed))?;
-            // an adapted decoder draws the seed's look: it colours the quilted holes
+            // an autoencoder adapted to the seed draws its look: it colours the quilted holes
             refiner.set_bank_colour_from_decoder(*adapt_s > 0.0 && *bank == BankSpec::Seed);
             if let Some(b) = refiner.bank() {
                 let f = refiner.config().downsample_factor();
@@ -292,15 +292,8 @@ pub fn seed_reconstruction_psnr(model: Option<&Path>, seed: &Seed) -> Result<f64
     let out = refiner
         .complete_at(frame, &nothing, Some(&seed.camera.intrinsics))
         .map_err(|e| PipelineError::Refiner(Box::new(e)))?;
-    let (mut se, mut n) = (0.0f64, 0usize);
-    for (a, b) in out.colour.data.iter().zip(&frame.colour.data) {
-        for c in 0..3 {
-            se += f64::from(a[c] - b[c]).powi(2);
-        }
-        n += 3;
-    }
-    let mse = se / n.max(1) as f64;
-    Ok(if mse > 0.0 { 10.0 * (1.0 / mse).log10() } else { f64::INFINITY })
+    // the output has the seed's size, so a PSNR is always defined
+    Ok(sgam_metrics::psnr(&out.colour, &frame.colour, None).unwrap_or(0.0))
 }
 
 #[cfg(test)]

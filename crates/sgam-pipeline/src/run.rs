@@ -73,8 +73,8 @@ pub struct Generated {
     pub streaming: MapStreaming,
 }
 
-/// The refiner a run builds: with `adapt_s`, the model whose decoder [`crate::adapt`] tuned to the
-/// seed, in the run folder (adapted now for a new run, read back for a resumed one).
+/// The refiner a run builds: with `adapt_s`, the model [`crate::adapt`] tuned to the seed, in the
+/// run folder (adapted now for a new run, read back for a resumed one).
 fn adapted(
     dir: &Path,
     config: &RunConfig,
