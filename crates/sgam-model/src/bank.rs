@@ -82,11 +82,43 @@ impl BankPixels {
     /// The base frame and the cell `[row, column]` of it behind cell `cell` of bank frame
     /// `frame` of `bank` (laid out as [`CodeBank::rolled`] lays it out).
     pub fn source(&self, bank: &CodeBank, frame: usize, cell: usize) -> Option<(&sgam_core::RgbdFrame, [usize; 2])> {
+        let (i, at) = self.source_index(bank, frame, cell)?;
+        Some((&self.bases[i], at))
+    }
+
+    /// [`Self::source`] as the index of the base frame in [`Self::bases`].
+    pub fn source_index(&self, bank: &CodeBank, frame: usize, cell: usize) -> Option<(usize, [usize; 2])> {
         let [rr, rc] = rolls(self.roll_cells, [bank.rows, bank.cols]);
-        let base = self.bases.get(frame / (rr * rc))?;
+        let base = frame / (rr * rc);
+        if base >= self.bases.len() {
+            return None;
+        }
         let (r, c) = ((frame % (rr * rc)) / rc, frame % rc);
         let (dy, dx) = (r * self.roll_cells[0], c * self.roll_cells[1]);
         Some((base, [(cell / bank.cols + dy) % bank.rows, (cell % bank.cols + dx) % bank.cols]))
+    }
+
+    /// Per base frame, per `f x f` cell (row-major over the bank's grid): whether every pixel of
+    /// the cell has a valid depth. A cell with a pixel missing (a real sensor's hole, a sky, the
+    /// holes of a round trip) has nothing whole to give a hole ([`FillHints::source_usable`]).
+    pub fn complete_cells(&self, bank: &CodeBank, f: usize) -> Vec<Vec<bool>> {
+        self.bases
+            .iter()
+            .map(|base| {
+                let bw = base.width() as usize;
+                (0..bank.rows * bank.cols)
+                    .map(|cell| {
+                        let (cy, cx) = (cell / bank.cols, cell % bank.cols);
+                        (cy * f..(cy + 1) * f).all(|y| {
+                            (cx * f..(cx + 1) * f).all(|x| {
+                                x < bw
+                                    && base.depth_m.data.get(y * bw + x).is_some_and(|d| sgam_core::is_valid_depth(*d))
+                            })
+                        })
+                    })
+                    .collect()
+            })
+            .collect()
     }
 }
 
@@ -321,6 +353,15 @@ impl CodeBank {
                         })
                     })
                     .collect();
+                if let Some(usable) = hints.source_usable {
+                    // a match that would take a cell with nothing whole behind it is passed over
+                    let whole = |c: &(f32, usize, [i32; 2])| {
+                        hole.iter().all(|&i| usable(c.1, shifted_cell(i, c.2, [rows, cols])))
+                    };
+                    if scored.iter().any(whole) {
+                        scored.retain(whole);
+                    }
+                }
                 if let Some(distance) = hints.band_distance {
                     // the best matches by the codes' looks, ranked again by the band's pixels
                     keep_best(&mut scored, PIXEL_CANDIDATES);
@@ -453,6 +494,10 @@ pub struct FillHints<'a> {
     /// the codes' looks are ranked again by it, as image quilting matches the overlap's pixels.
     #[allow(clippy::type_complexity)]
     pub band_distance: Option<&'a (dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)>,
+    /// Whether cell `cell` of bank frame `frame` may give its content to a hole (a seed's bank:
+    /// its pixels are all there, [`BankPixels::complete_cells`]). A match that would take any of
+    /// its hole's cells from an unusable one is passed over, unless every match would.
+    pub source_usable: Option<&'a (dyn Fn(usize, usize) -> bool + Sync)>,
 }
 
 impl std::fmt::Debug for FillHints<'_> {
@@ -460,6 +505,7 @@ impl std::fmt::Debug for FillHints<'_> {
         f.debug_struct("FillHints")
             .field("plain", &self.plain.map(<[bool]>::len))
             .field("band_distance", &self.band_distance.is_some())
+            .field("source_usable", &self.source_usable.is_some())
             .finish()
     }
 }
@@ -684,6 +730,46 @@ mod tests {
             })
             .collect();
         assert_eq!(frames.len(), 2);
+    }
+
+    #[test]
+    fn a_match_whose_source_cells_lack_pixels_is_passed_over_unless_every_match_would_take_them() {
+        let (rows, cols) = (6usize, 6usize);
+        let n = rows * cols;
+        let f0: Vec<u16> = (0..n as u16).collect();
+        // frame 0 matches the band exactly; frame 1 is one code off everywhere
+        let f1: Vec<u16> = f0.iter().map(|c| c + 1).collect();
+        let bank = CodeBank { rows, cols, n_embed: 64, codebook_crc32: 0, codes: [f0.clone(), f1].concat() };
+        let mut missing = vec![false; n];
+        for i in [14, 15, 20, 21] {
+            missing[i] = true;
+        }
+        let search = BankSearch { top_k: 1, max_shift_x: 0, max_shift_y: 0, min_cells: 1, ..Default::default() };
+        let draw = |usable: &(dyn Fn(usize, usize) -> bool + Sync)| {
+            let mut codes: Vec<u32> = f0.iter().map(|&c| c as u32).collect();
+            let hints = FillHints { source_usable: Some(usable), ..Default::default() };
+            let mut rng = ChaCha8Rng::seed_from_u64(1);
+            bank.fill_with(&mut codes, &missing, &looks(64), &hints, &search, &mut rng).draws[0].frame
+        };
+        assert_eq!(draw(&|_, _| true), 0);
+        // frame 0 has nothing behind cell 20 (the hole's own place, say): frame 1 it is
+        assert_eq!(draw(&|frame, cell| !(frame == 0 && cell == 20)), 1);
+        // a cell outside the hole does not matter
+        assert_eq!(draw(&|frame, cell| !(frame == 0 && cell == 0)), 0);
+        // when no match is whole the best one is still taken
+        assert_eq!(draw(&|_, cell| cell != 20), 0);
+    }
+
+    #[test]
+    fn complete_cells_are_those_with_every_pixel_s_depth() {
+        let bank = CodeBank { rows: 2, cols: 2, n_embed: 4, codebook_crc32: 0, codes: vec![0; 4] };
+        let mut frame = sgam_core::RgbdFrame::empty(4, 4);
+        frame.depth_m.data.iter_mut().for_each(|d| *d = 2.0);
+        frame.depth_m.data[2 * 4 + 3] = 0.0; // a pixel of cell (1, 1)
+        let pixels = BankPixels { bases: vec![frame], roll_cells: [0, 0] };
+        assert_eq!(pixels.complete_cells(&bank, 2), vec![vec![true, true, true, false]]);
+        assert_eq!(pixels.source_index(&bank, 0, 3), Some((0, [1, 1])));
+        assert_eq!(pixels.source_index(&bank, 1, 3), None);
     }
 
     #[test]

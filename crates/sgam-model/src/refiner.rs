@@ -324,11 +324,20 @@ impl VqRefiner {
                             band_pixel_distance(&work, bank, p, f, frame, shift, band)
                         }
                     });
+                    // with the bank's pixels, a hole takes no cell that has pixels missing (a
+                    // real sensor's holes): pasted, they would leave the hole without depth
+                    let complete = self.bank_pixels.as_deref().filter(|_| quilt_pixels).map(|p| {
+                        let cells = p.complete_cells(bank, f);
+                        move |frame: usize, cell: usize| {
+                            p.source_index(bank, frame, cell).is_some_and(|(b, [y, x])| cells[b][y * bank.cols + x])
+                        }
+                    });
                     let hints = FillHints {
                         plain: plain.as_deref(),
                         band_distance: distance
                             .as_ref()
                             .map(|d| d as &(dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)),
+                        source_usable: complete.as_ref().map(|u| u as &(dyn Fn(usize, usize) -> bool + Sync)),
                     };
                     bank.fill_with(&mut codes, &cells, looks, &hints, &search, &mut self.rng)
                 }
