@@ -15,6 +15,12 @@
 //! grid, so a quilted piece is drawn continuing its surroundings) and the seed's pixels give
 //! their depth.
 //!
+//! Half of each batch are round trips of the seed ([`crate::roundtrip`]): the seed brought back
+//! through a camera of the run's own path, so its holes are real disocclusions and the frame's
+//! far edge, and the target there is the seed's own pixels (cyclic virtual cameras, as
+//! InfiniteNature-Zero learns from single images). The encoder learns what the seed's holes
+//! hold from around them, which is what a model drawing the new area (`--bank none`) uses.
+//!
 //! The weights are written to the run folder ([`ADAPTED_FILE`]) and a resumed run loads them.
 
 use std::path::{Path, PathBuf};
@@ -27,6 +33,7 @@ use sgam_model::params::{save_safetensors, WeightPrecision};
 use sgam_model::train::{Stage, TrainConfig, TrainPair, Trainer};
 
 use crate::bank::mirrored;
+use crate::roundtrip::RoundTrip;
 use crate::{PipelineError, Result, Seed, BUNDLED_MODEL};
 
 /// The adapted weights in a run folder.
@@ -40,6 +47,12 @@ const BATCH: usize = 2;
 
 /// Adam's learning rate: a few hundred steps is all a budget of minutes buys on two cores.
 const LR: f64 = 5e-4;
+
+/// Round trips of the seed adapted on (the nearest steps of the path that lose part of it).
+pub const ADAPT_TRIPS: usize = 6;
+
+/// Random crop positions tried for a round trip's crop; the one with the most holes is taken.
+const TRIP_CROP_TRIES: usize = 8;
 
 /// Steps a code may go unused before the revival may give it a feature of the seed.
 const REVIVAL_WINDOW: u64 = 20;
@@ -74,14 +87,17 @@ pub struct AdaptOutcome {
     pub psnr_before_db: f64,
     /// See `psnr_before_db`.
     pub psnr_after_db: f64,
+    /// Round trips of the seed in the batches.
+    pub trips: usize,
 }
 
-/// Fine-tunes the autoencoder of `model` (the bundled model when `None`) on `seed` for `budget`
-/// (at least one step) and writes it, without its code head, to `out` (f32, config embedded,
-/// atomically). `progress` is called after every step.
+/// Fine-tunes the autoencoder of `model` (the bundled model when `None`) on `seed` and its
+/// round `trips` for `budget` (at least one step) and writes it, without its code head, to `out`
+/// (f32, config embedded, atomically). `progress` is called after every step.
 pub fn adapt_to_seed(
     model: Option<&Path>,
     seed: &Seed,
+    trips: &[RoundTrip],
     budget: Duration,
     out: &Path,
     progress: &mut dyn FnMut(AdaptProgress),
@@ -115,22 +131,46 @@ pub fn adapt_to_seed(
     // the seed through the autoencoder, whole, before and after
     let whole = crops_of(&bases[0], w / f * f, h / f * f, [0, 0]);
     let psnr_before_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&before, &config, x))?;
+    // the depth coding follows the seed's depths: the bundled model codes 7-16 m, so a seed a
+    // few units away would sit beyond its nearest code and every depth it draws at 7 m or more
+    let config = sgam_model::ModelConfig { depth: seed_depth_coding(&seed.frame).unwrap_or(config.depth), ..config };
     let mut trainer = Trainer::from_model(&config, &tc, before);
     let mut rng = ChaCha8Rng::seed_from_u64(0x000A_DA97);
     let start = Instant::now();
     loop {
-        let batch: Vec<(RgbdFrame, Intrinsics)> = (0..BATCH)
-            .filter_map(|_| {
+        let mut ks = Vec::with_capacity(BATCH);
+        let mut pairs = Vec::with_capacity(BATCH);
+        for b in 0..BATCH {
+            let at = |rng: &mut ChaCha8Rng| {
+                [rng.random_range(0..=(w - side) / f) * f, rng.random_range(0..=(h - side) / f) * f]
+            };
+            if b % 2 == 1 && !trips.is_empty() {
+                // a round trip: the crop with the most holes of a few
+                let trip = &trips[rng.random_range(0..trips.len())];
+                let holes = |[x0, y0]: [usize; 2]| {
+                    (y0..y0 + side)
+                        .map(|y| trip.guidance.missing[y * w + x0..y * w + x0 + side].iter().filter(|m| **m).count())
+                        .sum::<usize>()
+                };
+                let Some(best) = (0..TRIP_CROP_TRIES).map(|_| at(&mut rng)).max_by_key(|p| holes(*p)) else { continue };
+                let (Some((input, k_crop)), Some((target, _))) = (
+                    crops_of(&(trip.guidance.frame.clone(), k), side, side, best),
+                    crops_of(&bases[0], side, side, best),
+                ) else {
+                    continue;
+                };
+                let missing = (best[1]..best[1] + side)
+                    .flat_map(|y| trip.guidance.missing[y * w + best[0]..y * w + best[0] + side].iter().copied())
+                    .collect();
+                ks.push(k_crop);
+                pairs.push(TrainPair { missing, input, target });
+            } else {
                 let base = &bases[rng.random_range(0..bases.len())];
-                let at = [rng.random_range(0..=(w - side) / f) * f, rng.random_range(0..=(h - side) / f) * f];
-                crops_of(base, side, side, at)
-            })
-            .collect();
-        let ks: Vec<Intrinsics> = batch.iter().map(|b| b.1).collect();
-        let pairs: Vec<TrainPair> = batch
-            .into_iter()
-            .map(|(frame, _)| TrainPair { missing: vec![false; side * side], input: frame.clone(), target: frame })
-            .collect();
+                let Some((frame, k_crop)) = crops_of(base, side, side, at(&mut rng)) else { continue };
+                ks.push(k_crop);
+                pairs.push(TrainPair { missing: vec![false; side * side], input: frame.clone(), target: frame });
+            }
+        }
         let r = trainer.step_on_at(&pairs, &ks).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         let elapsed = start.elapsed();
         progress(AdaptProgress {
@@ -153,7 +193,21 @@ pub fn adapt_to_seed(
     let meta = sgam_model::refiner::weight_metadata(&adapted_config).map_err(model_error)?;
     save_safetensors(&adapted, out, WeightPrecision::F32, Some(meta))
         .map_err(|source| PipelineError::ModelLoad { path: Some(out.to_path_buf()), source })?;
-    Ok(AdaptOutcome { steps: trainer.step, seconds, psnr_before_db, psnr_after_db })
+    Ok(AdaptOutcome { steps: trainer.step, seconds, psnr_before_db, psnr_after_db, trips: trips.len() })
+}
+
+/// A depth coding spanning `frame`'s depths: nearest at 0.8 x its 1st percentile, farthest at
+/// 1.5 x its 99th (room for what the new area holds beyond), at least 1.5 x the nearest apart.
+/// `None` without valid depth.
+pub fn seed_depth_coding(frame: &RgbdFrame) -> Option<sgam_model::DepthCoding> {
+    let mut d: Vec<f32> = frame.depth_m.data.iter().copied().filter(|d| sgam_core::is_valid_depth(*d)).collect();
+    if d.is_empty() {
+        return None;
+    }
+    d.sort_by(f32::total_cmp);
+    let near_m = 0.8 * d[d.len() / 100];
+    let far_m = (1.5 * d[d.len() - 1 - d.len() / 100]).max(1.5 * near_m);
+    Some(sgam_model::DepthCoding { near_m, far_m, offset_m: 0.0 })
 }
 
 /// The `cw x ch` crop of `base` at `[x, y]`, with its intrinsics.
@@ -186,4 +240,32 @@ fn psnr(
     let decoded = sgam_model::generative::autoencode(model, config, &[frame], &[*k], &device)
         .map_err(|source| PipelineError::ModelLoad { path: None, source })?;
     Ok(decoded.first().and_then(|d| sgam_metrics::psnr(&d.colour, &frame.colour, None)).unwrap_or(0.0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_seed_s_depth_coding_spans_its_depths_with_room_beyond() {
+        let mut frame = RgbdFrame::empty(10, 10);
+        for (i, d) in frame.depth_m.data.iter_mut().enumerate() {
+            *d = 1.5 + 0.02 * i as f32; // 1.5 .. 3.48
+        }
+        frame.depth_m.data[0] = 0.0; // no depth: not counted
+        let c = seed_depth_coding(&frame).unwrap();
+        assert!((c.near_m - 0.8 * 1.52).abs() < 1e-4 && (c.far_m - 1.5 * 3.48).abs() < 1e-4, "{c:?}");
+        // every depth of the seed codes inside [-1, 1], and back
+        for d in &frame.depth_m.data[1..] {
+            let v = c.encode(*d);
+            assert!((-1.0..=1.0).contains(&v), "{d} -> {v}");
+            assert!((c.decode(v) - d).abs() < 1e-3);
+        }
+        // a flat seed still gets a range; none without depth
+        frame.depth_m.data.iter_mut().for_each(|d| *d = 2.0);
+        let flat = seed_depth_coding(&frame).unwrap();
+        assert!(flat.far_m >= 1.5 * flat.near_m);
+        frame.depth_m.data.iter_mut().for_each(|d| *d = 0.0);
+        assert!(seed_depth_coding(&frame).is_none());
+    }
 }

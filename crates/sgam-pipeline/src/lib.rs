@@ -36,6 +36,7 @@ mod keyframes;
 mod pairs;
 mod poses;
 mod refiners;
+pub mod roundtrip;
 pub mod run;
 mod seeds;
 pub mod settings;

@@ -98,9 +98,19 @@ fn adapted(
         }
     } else {
         let mut failed = None;
+        // round trips of the seed along this run's own path
+        let trips = crate::roundtrip::round_trips(
+            &seed.camera,
+            &seed.frame,
+            &config.trajectory,
+            config.steps,
+            &config.generator_config(),
+            crate::adapt::ADAPT_TRIPS,
+        )?;
         let outcome = crate::adapt::adapt_to_seed(
             model.as_deref(),
             seed,
+            &trips,
             std::time::Duration::from_secs_f32(*adapt_s),
             &path,
             &mut |p| {

@@ -387,11 +387,15 @@ pub struct RefinerSettings {
     /// Adapt the refiner to the seed for this many seconds before generating (0 = off): its
     /// autoencoder (encoder, codebook, decoder) is fine-tuned on crops of the seed and its mirror
     /// image, so that the seed's codes hold the seed (a Google Earth seed through the autoencoder:
-    /// 7-9 dB before, 22-25 dB after 60 s on two cores). With --bank seed the holes then take the
-    /// seed's codes under the adapted encoder, coloured by the adapted decoder, which blends
-    /// them into their surroundings, and the seed's pixels give their depth. Softer than the
-    /// seed's own pixels and not better on every seed (docs/STATUS.md), so off by default. The
-    /// weights go to RUN/adapted.safetensors; --resume uses them.
+    /// 7-9 dB before, 24-27 dB after 60 s on two cores), and on round trips of the seed along
+    /// this run's path (the seed rendered to a camera of the path and back: the holes are what
+    /// that camera did not see, the seed is their truth), with its depth coded over the seed's
+    /// own depths. With --bank seed the holes then take the seed's codes under the adapted
+    /// encoder, coloured by the adapted decoder, which blends them into their surroundings, and
+    /// the seed's pixels give their depth; with --bank none (and --temperature 0) the adapted
+    /// model draws them itself. Softer than the seed's own pixels and not better on every seed
+    /// (docs/STATUS.md), so off by default. The weights go to RUN/adapted.safetensors; --resume
+    /// uses them.
     #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
     pub adapt: f32,
 }

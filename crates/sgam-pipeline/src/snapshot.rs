@@ -56,6 +56,24 @@ pub fn parse_snapshot(path: &Path, bytes: &[u8]) -> Result<(SnapshotState, TsdfM
     Ok((state, map))
 }
 
+/// The resolved configuration of the run in `dir`, from its snapshot (checked as a whole; the
+/// map is not parsed).
+pub fn read_run_config(dir: &Path) -> Result<RunConfig> {
+    let path = dir.join(SNAPSHOT_FILE);
+    if !path.is_file() {
+        return Err(PipelineError::Config(format!(
+            "{}: no snapshot (is {} a run folder of sgam generate?)",
+            path.display(),
+            dir.display()
+        )));
+    }
+    let (json, _) = sgam_io::read_snapshot(&path, SNAPSHOT_VERSION)?;
+    let bad = |msg: String| PipelineError::Corrupt { path: path.clone(), msg };
+    let state: SnapshotState = serde_json::from_slice(&json).map_err(|e| bad(format!("corrupt state: {e}")))?;
+    state.config.validate().map_err(|e| bad(format!("stored configuration: {e}")))?;
+    Ok(state.config)
+}
+
 /// Reads and validates `dir/snapshot.bin`: the file ([`parse_snapshot`]), then its content (the
 /// configuration, rigid finite cameras of one size, one timing per step, the frames on disk).
 pub fn read_snapshot(dir: &Path) -> Result<(SnapshotState, TsdfMap)> {

@@ -65,8 +65,12 @@ impl RunObserver for CliObserver<'_> {
 
     fn adapted(&mut self, o: &sgam_pipeline::adapt::AdaptOutcome) -> ObserverResult {
         self.finish_progress();
+        let trips = match o.trips {
+            0 => "none on round trips (no camera of the path loses 3-50 % of the seed)".to_string(),
+            n => format!("half of them on {n} round trips of it"),
+        };
         eprintln!(
-            "adapted to the seed: {} steps in {:.0} s; the seed through the autoencoder: {:.1} dB -> {:.1} dB",
+            "adapted to the seed: {} steps in {:.0} s, {trips}; the seed through the autoencoder: {:.1} dB -> {:.1} dB",
             o.steps, o.seconds, o.psnr_before_db, o.psnr_after_db
         );
         Ok(())

@@ -424,6 +424,11 @@ fn adapt_tunes_the_decoder_to_a_real_seed_keeps_it_in_the_run_and_resume_uses_it
     assert_eq!(std::fs::read(&adapted).unwrap(), bytes);
     let run_json: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
     assert_eq!(run_json["config"]["refiner"]["adapt_s"], 2.0, "run.json does not record the adaptation");
+    // its round trips are scored with the adapted weights, and said to be an upper bound
+    let out = sgam(&["eval", "seed", run.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["round_trip"]["adapted_saw_holes"], true, "{}", v["round_trip"]);
     // a run whose adapted weights went missing is not resumed with others
     let other = tmp.path().join("cut");
     let mut args =
@@ -481,6 +486,28 @@ fn a_real_seed_grows_from_its_own_pixels_and_eval_seed_judges_it() {
     assert!(shares.iter().all(|s| (0.0..=1.0).contains(s)) && shares[7] > 0.0, "{shares:?}");
     let floating = v["floating_share"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&floating));
+    // round trips of the seed along the run's path: real holes, scored with the run's refiner
+    // beside push-pull filling, each pictured
+    let trips = v["round_trip"]["each"].as_array().unwrap();
+    assert!(!trips.is_empty(), "{}", v["round_trip"]);
+    for t in trips {
+        let share = t["hole_share"].as_f64().unwrap();
+        assert!((0.03..=0.5).contains(&share), "{share}");
+        for who in ["refiner", "push_pull"] {
+            let db = t[who]["psnr_db"].as_f64().unwrap();
+            assert!(db.is_finite() && db > 0.0, "{who}: {db}");
+        }
+    }
+    assert_eq!(v["round_trip"]["adapted_saw_holes"], false);
+    let pictures = tmp.path().join("trips");
+    let out =
+        sgam(&["eval", "seed", run.to_str().unwrap(), "--json", "--round-trip-images", pictures.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let written = std::fs::read_dir(&pictures).unwrap().count();
+    assert_eq!(written, trips.len());
+    let out = sgam(&["eval", "seed", run.to_str().unwrap(), "--json", "--round-trips", "0"]);
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(v["round_trip"].is_null());
     // a folder with no run in it is named
     let out = sgam(&["eval", "seed", tmp.path().join("nothing").to_str().unwrap()]);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("nothing"));
