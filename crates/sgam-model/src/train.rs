@@ -658,6 +658,7 @@ impl Trainer {
         let mut optims = Vec::new();
         for name in ["optim_model.bpk", "optim_disc.bpk"] {
             let path = dir.join(name);
+            check_optimizer_state(&path)?;
             let optim = adam(&train_config)
                 .load(&path)
                 .map_err(|e| ModelError::checkpoint(&path, format!("cannot read: {e}")))?;
@@ -915,6 +916,19 @@ fn one() -> f32 {
     1.0
 }
 
+/// Refuses an optimizer state burn-optim would panic on: every state tensor must carry the id of
+/// its parameter (a damaged file can lose it while still parsing). Reads only the header.
+pub(crate) fn check_optimizer_state(path: &Path) -> Result<(), ModelError> {
+    let bad = |msg: String| ModelError::checkpoint(path, msg);
+    let tensors = burn_pack::Reader::from_file(path)
+        .and_then(burn_pack::Reader::into_tensors)
+        .map_err(|e| bad(format!("cannot read: {e}")))?;
+    match tensors.iter().find(|t| t.param_id.is_none()) {
+        Some(t) => Err(bad(format!("state tensor '{}' has no parameter id", t.name))),
+        None => Ok(()),
+    }
+}
+
 /// Per-pixel loss weights `[B, 1, H, W]`: `missing_weight` where the input is missing, 1 elsewhere.
 fn missing_weights(batch: &[TrainPair], missing_weight: f32, dev: &Device) -> Tensor<4> {
     let (h, w) = (batch[0].target.height() as usize, batch[0].target.width() as usize);
@@ -1007,4 +1021,26 @@ pub fn train<S: PairSource + ?Sized>(
         last,
         images_per_s: images as f32 / start.elapsed().as_secs_f32().max(1e-6),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_optimizer_state_tensor_without_its_parameter_id_is_refused_by_name() {
+        let tmp = tempfile::tempdir().unwrap();
+        let write = |name: &str, id: Option<u64>| {
+            let path = tmp.path().join(name);
+            let bytes = burn::tensor::Bytes::from_elems(vec![1.0f32, 2.0]);
+            let t = burn_pack::Tensor::new("7.moment_1".into(), burn::tensor::DType::F32, [2], id, bytes);
+            burn_pack::Writer::new(vec![t]).write_to_file(&path).unwrap();
+            path
+        };
+        assert!(check_optimizer_state(&write("good.bpk", Some(7))).is_ok());
+        let e = check_optimizer_state(&write("bad.bpk", None)).unwrap_err().to_string();
+        assert!(e.contains("bad.bpk") && e.contains("7.moment_1") && e.contains("parameter id"), "{e}");
+        let e = check_optimizer_state(&tmp.path().join("none.bpk")).unwrap_err().to_string();
+        assert!(e.contains("none.bpk"), "{e}");
+    }
 }
