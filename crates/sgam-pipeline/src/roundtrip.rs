@@ -20,6 +20,10 @@ use crate::{RefinerSpec, TrajectorySpec};
 /// completion problem: fewer is no hole, more leaves too little to continue.
 pub const HOLE_SHARE: std::ops::RangeInclusive<f64> = 0.03..=0.5;
 
+/// Below this share of a trip's holes filled, [`TripScore::filled_psnr_db`] is not given (a few
+/// pixels say nothing).
+pub const MIN_FILLED_SHARE: f64 = 0.05;
+
 /// Steps of the planned path tried as the virtual camera, nearest first (spread so the trips
 /// differ; a path shorter than a step leaves it out).
 const VIA_STEPS: [usize; 12] = [2, 4, 6, 9, 12, 16, 20, 25, 30, 40, 50, 60];
@@ -123,6 +127,9 @@ pub struct TripScore {
     pub depth_abs_rel: Option<f64>,
     /// Share of the holes the completion left without depth.
     pub no_depth_share: f64,
+    /// Colour PSNR on the holes the completion gave a depth (what it did fill), dB; `None` when
+    /// it filled less than [`MIN_FILLED_SHARE`] of them.
+    pub filled_psnr_db: Option<f64>,
 }
 
 /// Scores `completed` against the seed `frame` on the holes of `trip`; `None` when it has none.
@@ -140,7 +147,11 @@ pub fn score(trip: &RoundTrip, frame: &RgbdFrame, completed: &RgbdFrame) -> Opti
             with_depth += 1;
         }
     }
+    let filled: Vec<bool> = holes.iter().zip(&completed.depth_m.data).map(|(h, d)| *h && is_valid_depth(*d)).collect();
     Some(TripScore {
+        filled_psnr_db: (with_depth as f64 >= MIN_FILLED_SHARE * n as f64)
+            .then(|| sgam_metrics::psnr(&completed.colour, &frame.colour, Some(&filled)))
+            .flatten(),
         psnr_db,
         colour_l1: l1 / n as f64,
         depth_abs_rel: (with_depth > 0).then(|| rel / with_depth as f64),
@@ -304,6 +315,12 @@ mod tests {
         let s = score(&trip, &frame, &frame).unwrap();
         assert_eq!(s.psnr_db, f64::INFINITY);
         assert_eq!(s.depth_abs_rel, Some(0.0));
+        assert_eq!((s.no_depth_share, s.filled_psnr_db), (0.0, Some(f64::INFINITY)));
+        // what came back, holes left as they are: nothing filled, and scored as such
+        let unfilled = score(&trip, &frame, &trip.seed_with_holes(&frame)).unwrap();
+        assert_eq!((unfilled.no_depth_share, unfilled.filled_psnr_db, unfilled.depth_abs_rel), (1.0, None, None));
+        // black against the floor's and the box's colours
+        assert!(unfilled.psnr_db < 15.0, "{}", unfilled.psnr_db);
         let Ok(pushed) = NullRefiner { fill: true }.refine(&trip.guidance);
         let p = score(&trip, &frame, &pushed).unwrap();
         assert!(p.psnr_db.is_finite() && p.colour_l1 > 0.0);

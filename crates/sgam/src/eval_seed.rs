@@ -140,7 +140,10 @@ pub fn evaluate(a: &SeedArgs) -> Result<serde_json::Value> {
 /// The round trips' medians (the run's refiner beside push-pull filling) and each trip.
 fn round_trip_json(r: &sgam_pipeline::roundtrip::RoundTripReport) -> serde_json::Value {
     use sgam_pipeline::roundtrip::TripScore;
-    let score = |s: &TripScore| json!({"psnr_db": s.psnr_db, "colour_l1": s.colour_l1, "depth_abs_rel": s.depth_abs_rel, "no_depth_share": s.no_depth_share});
+    let score = |s: &TripScore| {
+        json!({"psnr_db": s.psnr_db, "colour_l1": s.colour_l1, "depth_abs_rel": s.depth_abs_rel,
+               "no_depth_share": s.no_depth_share, "filled_psnr_db": s.filled_psnr_db})
+    };
     let pick = |f: fn(&TripScore) -> Option<f64>| json!({"refiner": r.median(|t| f(&t.refiner)), "push_pull": r.median(|t| f(&t.push_pull))});
     json!({
         "trips": r.trips.len(),
@@ -151,6 +154,7 @@ fn round_trip_json(r: &sgam_pipeline::roundtrip::RoundTripReport) -> serde_json:
         "psnr_db": pick(|s| Some(s.psnr_db)),
         "colour_l1": pick(|s| Some(s.colour_l1)),
         "depth_abs_rel": pick(|s| s.depth_abs_rel),
+        "filled_psnr_db": pick(|s| s.filled_psnr_db),
         "each": r.trips.iter().map(|t| json!({
             "via_step": t.via_step,
             "hole_share": t.hole_share,
@@ -204,7 +208,7 @@ fn round_trip_summary(r: &serde_json::Value) -> String {
     }
     format!(
         "\n  round trips of the seed ({} trips, median {} of it lost), on the holes:\n    \
-         colour PSNR {} dB (push-pull fill {} dB), depth abs-rel {} (push-pull {}), filled {}{caveat}",
+         colour PSNR {} dB (push-pull fill {} dB), depth abs-rel {} (push-pull {}), filled {} (there {} dB){caveat}",
         r["trips"],
         g(&r["median_hole_share"]),
         f(&r["psnr_db"]["refiner"]),
@@ -212,6 +216,7 @@ fn round_trip_summary(r: &serde_json::Value) -> String {
         g(&r["depth_abs_rel"]["refiner"]),
         g(&r["depth_abs_rel"]["push_pull"]),
         g(&r["filled_share"]),
+        f(&r["filled_psnr_db"]["refiner"]),
     )
 }
 
