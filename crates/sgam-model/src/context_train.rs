@@ -486,8 +486,7 @@ impl ContextTrainer {
         }
         let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
         let optim = dir.join("optim.bpk");
-        crate::train::check_optimizer_state(&optim)?;
-        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
+        t.optim = crate::train::load_optimizer(&optim, |p| adam().load(p))?;
         t.step = state.step;
         t.rng = crate::checkpoint::rng_at(state.rng_seed, state.rng_stream, state.rng_word_pos);
         Ok(t)

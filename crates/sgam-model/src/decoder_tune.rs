@@ -314,8 +314,7 @@ impl DecoderTuner {
         }
         let mut t = Self::new(&state.model_config, &tensors, encoder, encoder_config, &config)?;
         let optim = dir.join("optim.bpk");
-        crate::train::check_optimizer_state(&optim)?;
-        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
+        t.optim = crate::train::load_optimizer(&optim, |p| adam().load(p))?;
         t.step = state.step;
         Ok(t)
     }

@@ -782,12 +782,9 @@ impl CodeTrainer {
         }
         let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
         let optim = dir.join("optim.bpk");
-        crate::train::check_optimizer_state(&optim)?;
-        t.optim = adam().load(&optim).map_err(|e| ModelError::checkpoint(&optim, format!("cannot read: {e}")))?;
+        t.optim = crate::train::load_optimizer(&optim, |p| adam().load(p))?;
         let optim_tau = dir.join("optim_tau.bpk");
-        crate::train::check_optimizer_state(&optim_tau)?;
-        t.optim_tau =
-            adam().load(&optim_tau).map_err(|e| ModelError::checkpoint(&optim_tau, format!("cannot read: {e}")))?;
+        t.optim_tau = crate::train::load_optimizer(&optim_tau, |p| adam().load(p))?;
         t.temperature = CodeTemperature::from_log(state.log_tau, &t.device).train();
         t.step = state.step;
         t.rng = crate::checkpoint::rng_at(state.rng_seed, state.rng_stream, state.rng_word_pos);

@@ -657,12 +657,7 @@ impl Trainer {
         let disc = load_weights(disc, &dir.join("disc.safetensors"))?.train();
         let mut optims = Vec::new();
         for name in ["optim_model.bpk", "optim_disc.bpk"] {
-            let path = dir.join(name);
-            check_optimizer_state(&path)?;
-            let optim = adam(&train_config)
-                .load(&path)
-                .map_err(|e| ModelError::checkpoint(&path, format!("cannot read: {e}")))?;
-            optims.push(optim);
+            optims.push(load_optimizer(&dir.join(name), |p| adam(&train_config).load(p))?);
         }
         let optim_disc = optims.pop().ok_or_else(|| ModelError::checkpoint(&dir, "optimizer missing"))?;
         let optim_model = optims.pop().ok_or_else(|| ModelError::checkpoint(&dir, "optimizer missing"))?;
@@ -916,9 +911,20 @@ fn one() -> f32 {
     1.0
 }
 
+/// Loads the optimizer state at `path` with `load` (burn's `load`), refusing first by name what
+/// burn-optim would panic on ([`check_optimizer_state`]): every trainer's resume reads its
+/// optimizers through this.
+pub(crate) fn load_optimizer<O, E: std::fmt::Display>(
+    path: &Path,
+    load: impl FnOnce(&Path) -> Result<O, E>,
+) -> Result<O, ModelError> {
+    check_optimizer_state(path)?;
+    load(path).map_err(|e| ModelError::checkpoint(path, format!("cannot read: {e}")))
+}
+
 /// Refuses an optimizer state burn-optim would panic on: every state tensor must carry the id of
 /// its parameter (a damaged file can lose it while still parsing). Reads only the header.
-pub(crate) fn check_optimizer_state(path: &Path) -> Result<(), ModelError> {
+fn check_optimizer_state(path: &Path) -> Result<(), ModelError> {
     let bad = |msg: String| ModelError::checkpoint(path, msg);
     let tensors = burn_pack::Reader::from_file(path)
         .and_then(burn_pack::Reader::into_tensors)

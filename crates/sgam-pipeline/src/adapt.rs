@@ -62,6 +62,20 @@ pub fn adapted_path(run_dir: &Path) -> PathBuf {
     run_dir.join(ADAPTED_FILE)
 }
 
+/// The refiner a run in `dir` with `spec` completes holes with: with `--adapt` (`adapt_s > 0`)
+/// the run folder's adapted weights ([`adapted_path`]) in place of the model, else `spec`.
+pub fn adapted_spec(dir: &Path, spec: &crate::RefinerSpec) -> crate::RefinerSpec {
+    match spec {
+        crate::RefinerSpec::Model { options, bank, adapt_s, .. } if *adapt_s > 0.0 => crate::RefinerSpec::Model {
+            model: Some(adapted_path(dir)),
+            options: *options,
+            bank: bank.clone(),
+            adapt_s: *adapt_s,
+        },
+        other => other.clone(),
+    }
+}
+
 /// Progress of an adaptation, reported after every step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AdaptProgress {
@@ -129,7 +143,7 @@ pub fn adapt_to_seed(
     let k = seed.camera.intrinsics;
     let bases = [(seed.frame.clone(), k), (mirrored(&seed.frame), Intrinsics { cx: w as f32 - 1.0 - k.cx, ..k })];
     // the seed through the autoencoder, whole, before and after
-    let whole = crops_of(&bases[0], w / f * f, h / f * f, [0, 0]);
+    let whole = crops_of(&(&bases[0].0, bases[0].1), w / f * f, h / f * f, [0, 0]);
     let psnr_before_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&before, &config, x))?;
     // the depth coding follows the seed's depths: the bundled model codes 7-16 m, so a seed a
     // few units away would sit beyond its nearest code and every depth it draws at 7 m or more
@@ -147,26 +161,21 @@ pub fn adapt_to_seed(
             if b % 2 == 1 && !trips.is_empty() {
                 // a round trip: the crop with the most holes of a few
                 let trip = &trips[rng.random_range(0..trips.len())];
-                let holes = |[x0, y0]: [usize; 2]| {
-                    (y0..y0 + side)
-                        .map(|y| trip.guidance.missing[y * w + x0..y * w + x0 + side].iter().filter(|m| **m).count())
-                        .sum::<usize>()
-                };
+                let crop_mask = |at| crop(&trip.guidance.missing, w, side, side, at);
+                let holes = |at| crop_mask(at).iter().filter(|m| **m).count();
                 let Some(best) = (0..TRIP_CROP_TRIES).map(|_| at(&mut rng)).max_by_key(|p| holes(*p)) else { continue };
                 let (Some((input, k_crop)), Some((target, _))) = (
-                    crops_of(&(trip.guidance.frame.clone(), k), side, side, best),
-                    crops_of(&bases[0], side, side, best),
+                    crops_of(&(&trip.guidance.frame, k), side, side, best),
+                    crops_of(&(&bases[0].0, bases[0].1), side, side, best),
                 ) else {
                     continue;
                 };
-                let missing = (best[1]..best[1] + side)
-                    .flat_map(|y| trip.guidance.missing[y * w + best[0]..y * w + best[0] + side].iter().copied())
-                    .collect();
+                let missing = crop_mask(best);
                 ks.push(k_crop);
                 pairs.push(TrainPair { missing, input, target });
             } else {
-                let base = &bases[rng.random_range(0..bases.len())];
-                let Some((frame, k_crop)) = crops_of(base, side, side, at(&mut rng)) else { continue };
+                let (frame, k_base) = &bases[rng.random_range(0..bases.len())];
+                let Some((frame, k_crop)) = crops_of(&(frame, *k_base), side, side, at(&mut rng)) else { continue };
                 ks.push(k_crop);
                 pairs.push(TrainPair { missing: vec![false; side * side], input: frame.clone(), target: frame });
             }
@@ -210,24 +219,28 @@ pub fn seed_depth_coding(frame: &RgbdFrame) -> Option<sgam_model::DepthCoding> {
     Some(sgam_model::DepthCoding { near_m, far_m, offset_m: 0.0 })
 }
 
-/// The `cw x ch` crop of `base` at `[x, y]`, with its intrinsics.
+/// The `cw x ch` crop of `frame` at `[x, y]`, with its intrinsics.
 fn crops_of(
-    (frame, k): &(RgbdFrame, Intrinsics),
+    (frame, k): &(&RgbdFrame, Intrinsics),
     cw: usize,
     ch: usize,
-    [x0, y0]: [usize; 2],
+    at @ [x0, y0]: [usize; 2],
 ) -> Option<(RgbdFrame, Intrinsics)> {
-    let w = frame.width() as usize;
-    if x0 + cw > w || y0 + ch > frame.height() as usize {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    if x0 + cw > w || y0 + ch > h {
         return None;
     }
-    let mut out = RgbdFrame::empty(cw as u32, ch as u32);
-    for y in 0..ch {
-        let src = (y0 + y) * w + x0;
-        out.colour.data[y * cw..(y + 1) * cw].copy_from_slice(&frame.colour.data[src..src + cw]);
-        out.depth_m.data[y * cw..(y + 1) * cw].copy_from_slice(&frame.depth_m.data[src..src + cw]);
-    }
+    let (iw, ih) = (cw as u32, ch as u32);
+    let out = RgbdFrame {
+        colour: sgam_core::Image { width: iw, height: ih, data: crop(&frame.colour.data, w, cw, ch, at) },
+        depth_m: sgam_core::Image { width: iw, height: ih, data: crop(&frame.depth_m.data, w, cw, ch, at) },
+    };
     Some((out, Intrinsics { cx: k.cx - x0 as f32, cy: k.cy - y0 as f32, ..*k }))
+}
+
+/// The `cw x ch` crop at `[x, y]` of row-major `data`, `w` wide (the caller keeps it inside).
+fn crop<T: Copy>(data: &[T], w: usize, cw: usize, ch: usize, [x0, y0]: [usize; 2]) -> Vec<T> {
+    (y0..y0 + ch).flat_map(|y| data[y * w + x0..y * w + x0 + cw].iter().copied()).collect()
 }
 
 /// PSNR (dB) of the colour `model` draws from the frame's nearest codes.

@@ -191,15 +191,7 @@ pub fn evaluate(
 ) -> Result<RoundTripReport> {
     let g = config.generator_config();
     let trips = round_trips(camera, seed, &config.trajectory, config.steps, &g, count)?;
-    let spec = match &config.refiner {
-        RefinerSpec::Model { options, bank, adapt_s, .. } if *adapt_s > 0.0 => RefinerSpec::Model {
-            model: Some(crate::adapt::adapted_path(dir)),
-            options: *options,
-            bank: bank.clone(),
-            adapt_s: *adapt_s,
-        },
-        s => s.clone(),
-    };
+    let spec = crate::adapt::adapted_spec(dir, &config.refiner);
     let mut results = Vec::new();
     for trip in &trips {
         let as_seed =

@@ -82,7 +82,7 @@ fn adapted(
     resumed: bool,
     observer: &mut dyn RunObserver,
 ) -> Result<crate::RefinerSpec> {
-    let crate::RefinerSpec::Model { model, options, bank, adapt_s } = &config.refiner else {
+    let crate::RefinerSpec::Model { model, adapt_s, .. } = &config.refiner else {
         return Ok(config.refiner.clone());
     };
     if *adapt_s <= 0.0 {
@@ -124,7 +124,7 @@ fn adapted(
         }
         observer.adapted(&outcome)?;
     }
-    Ok(crate::RefinerSpec::Model { model: Some(path), options: *options, bank: bank.clone(), adapt_s: *adapt_s })
+    Ok(crate::adapt::adapted_spec(dir, &config.refiner))
 }
 
 /// Runs (or, with `resume`, continues) `config` in the run folder `dir`, writing a snapshot after

@@ -50,10 +50,16 @@ pub fn write_snapshot(dir: &Path, state: &SnapshotState, map: &TsdfMap) -> Resul
 /// checksum over the whole file), the state's JSON, the map.
 pub fn parse_snapshot(path: &Path, bytes: &[u8]) -> Result<(SnapshotState, TsdfMap)> {
     let (json, payload) = sgam_io::parse_snapshot(path, bytes, SNAPSHOT_VERSION)?;
-    let bad = |msg: String| PipelineError::Corrupt { path: path.to_path_buf(), msg };
-    let state: SnapshotState = serde_json::from_slice(json).map_err(|e| bad(format!("corrupt state: {e}")))?;
-    let map = TsdfMap::read_from(&mut &payload[..]).map_err(|e| bad(format!("corrupt map: {e}")))?;
+    let state = parse_state(path, json)?;
+    let map = TsdfMap::read_from(&mut &payload[..])
+        .map_err(|e| PipelineError::Corrupt { path: path.to_path_buf(), msg: format!("corrupt map: {e}") })?;
     Ok((state, map))
+}
+
+/// The state's JSON of the snapshot at `path`.
+fn parse_state(path: &Path, json: &[u8]) -> Result<SnapshotState> {
+    serde_json::from_slice(json)
+        .map_err(|e| PipelineError::Corrupt { path: path.to_path_buf(), msg: format!("corrupt state: {e}") })
 }
 
 /// The resolved configuration of the run in `dir`, from its snapshot (checked as a whole; the
@@ -68,9 +74,11 @@ pub fn read_run_config(dir: &Path) -> Result<RunConfig> {
         )));
     }
     let (json, _) = sgam_io::read_snapshot(&path, SNAPSHOT_VERSION)?;
-    let bad = |msg: String| PipelineError::Corrupt { path: path.clone(), msg };
-    let state: SnapshotState = serde_json::from_slice(&json).map_err(|e| bad(format!("corrupt state: {e}")))?;
-    state.config.validate().map_err(|e| bad(format!("stored configuration: {e}")))?;
+    let state = parse_state(&path, &json)?;
+    state
+        .config
+        .validate()
+        .map_err(|e| PipelineError::Corrupt { path: path.clone(), msg: format!("stored configuration: {e}") })?;
     Ok(state.config)
 }
 
