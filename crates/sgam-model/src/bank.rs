@@ -50,8 +50,25 @@ pub struct BankDraw {
     pub shift: [i32; 2],
     /// Mean descriptor distance over the hole's border band (lower is a better match).
     pub score: f32,
-    /// Cells of the hole.
+    /// Cells of the hole (of the tile, with [`BankSearch::tile`]).
     pub cells: usize,
+    /// Which hole (0, 1, ... among those filled) the cells belong to: the tiles of one hole
+    /// share its number.
+    pub hole: usize,
+    /// With a pixel distance ([`FillHints::band_distance`]): the source's pixels are taken
+    /// this many pixels `[down, right]` of its cells (the band's sub-cell alignment).
+    pub offset_px: [i32; 2],
+}
+
+/// What a cell filled earlier in the same [`CodeBank::fill_with`] took.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Pasted {
+    /// The bank frame ...
+    pub frame: usize,
+    /// ... its cell ...
+    pub cell: usize,
+    /// ... and the pixel offset ([`BankDraw::offset_px`]).
+    pub offset_px: [i32; 2],
 }
 
 /// What [`CodeBank::fill`] did.
@@ -154,6 +171,15 @@ pub struct BankSearch {
     /// out of the hole, whose cells there take the bank row's ground. An ablation (docs/MODEL.md,
     /// session 20): off by default.
     pub whole_objects: bool,
+    /// A hole of more than `tile x tile` cells is quilted as tiles of that side, each matched
+    /// on the cells around it, those tiles filled before it included ([`CodeBank::fill_with`]).
+    /// 0 fills a hole in one piece.
+    pub tile: usize,
+    /// [`Self::defer_thinner_than`] judges runs of missing cells, not holes: along every row
+    /// and column, the run of missing cells from a side of the frame waits when it is shorter,
+    /// whatever hole it belongs to (a band the camera uncovers is one hole with every crack
+    /// it touches, and as a whole neither thin nor short).
+    pub defer_runs: bool,
 }
 
 impl Default for BankSearch {
@@ -167,6 +193,8 @@ impl Default for BankSearch {
             min_cells: 3,
             defer_thinner_than: 3,
             whole_objects: false,
+            tile: 0,
+            defer_runs: false,
         }
     }
 }
@@ -293,6 +321,11 @@ impl CodeBank {
     }
 
     /// [`Self::fill`] with what the caller knows besides the codes ([`FillHints`]).
+    ///
+    /// With [`BankSearch::tile`], a hole larger than one tile is quilted as tiles (image
+    /// quilting's blocks), the tile with the most known cells around it first; a tile is
+    /// matched on the observed cells around it and on the cells tiles before it took, so a long
+    /// band is not one thin strip of one place but a continuation of what borders each piece.
     pub fn fill_with(
         &self,
         codes: &mut [u32],
@@ -307,134 +340,219 @@ impl CodeBank {
         if self.is_empty() || codes.len() != rows * cols || missing.len() != rows * cols {
             return BankFill::default();
         }
-        let look = |c: u32| looks.get(c as usize).copied().unwrap_or([0.0; 4]);
         let (mut draws, mut deferred, mut sources) = (Vec::new(), Vec::new(), Vec::new());
-        for hole in components(missing, rows, cols) {
+        // cells still without content: a tile filled is known to the tiles after it
+        let mut open = missing.to_vec();
+        // what each cell filled here took
+        let mut pasted: Vec<Option<Pasted>> = vec![None; rows * cols];
+        let mut holes = 0;
+        let to_fill = if search.defer_runs {
+            let runs = border_runs(missing, rows, cols, search.defer_thinner_than);
+            deferred.extend((0..rows * cols).filter(|&i| runs[i]));
+            missing.iter().zip(&runs).map(|(m, r)| *m && !r).collect()
+        } else {
+            missing.to_vec()
+        };
+        for hole in components(&to_fill, rows, cols) {
             if hole.len() < search.min_cells {
                 continue;
             }
-            if thin_at_border(&hole, rows, cols, search.defer_thinner_than) {
+            if !search.defer_runs && thin_at_border(&hole, rows, cols, search.defer_thinner_than) {
                 deferred.extend_from_slice(&hole);
                 continue;
             }
-            let band = border_band(&hole, missing, rows, cols, search.band);
-            // horizontal shifts that keep the hole inside the bank frame (a row fixes the
-            // ground's planar depth, a column does not), at most `max_shift_x` either way
-            let (x_lo, x_hi) = hole.iter().fold((cols as i32, 0), |(lo, hi), &i| {
-                let x = (i % cols) as i32;
-                (lo.min(x), hi.max(x))
-            });
-            let (dx_lo, dx_hi) = ((-x_lo).max(-search.max_shift_x), (cols as i32 - 1 - x_hi).min(search.max_shift_x));
-            let shifts: Vec<[i32; 2]> = (-search.max_shift_y..=search.max_shift_y)
-                .flat_map(|dy| (dx_lo.min(0)..=dx_hi.max(0)).map(move |dx| [dy, dx]))
+            let mut pieces: Vec<(Vec<usize>, usize)> = tiles(&hole, cols, search.tile)
+                .into_iter()
+                .map(|p| {
+                    let around = band_cells(&p, rows, cols, search.band);
+                    (p, around)
+                })
                 .collect();
-            let (frame, shift, score) = if band.is_empty() {
-                (rng.random_range(0..self.len()), [0, 0], f32::NAN)
-            } else {
-                let query: Vec<(i32, i32, [f32; 4])> =
-                    band.iter().map(|&i| ((i / cols) as i32, (i % cols) as i32, look(codes[i]))).collect();
-                let mut scored: Vec<(f32, usize, [i32; 2])> = (0..self.len())
-                    .into_par_iter()
-                    .flat_map_iter(|f| {
-                        let grid = self.frame(f);
-                        let query = &query;
-                        shifts.iter().map(move |&[dy, dx]| {
-                            let mut s = 0.0f32;
-                            for &(y, x, q) in query {
-                                let (by, bx) = (y + dy, x + dx);
-                                s += if by < 0 || bx < 0 || by >= rows as i32 || bx >= cols as i32 {
-                                    OUT_OF_FRAME
-                                } else {
-                                    let b = look(grid[by as usize * cols + bx as usize] as u32);
-                                    (0..4).map(|k| (q[k] - b[k]).abs()).sum::<f32>()
-                                };
-                            }
-                            (s / query.len() as f32, f, [dy, dx])
-                        })
-                    })
-                    .collect();
-                if let Some(usable) = hints.source_usable {
-                    // a match that would take a cell with nothing whole behind it is passed over
-                    let whole = |c: &(f32, usize, [i32; 2])| {
-                        hole.iter().all(|&i| usable(c.1, shifted_cell(i, c.2, [rows, cols])))
+            while !pieces.is_empty() {
+                // the piece with the largest share of known cells around it (reading order on ties)
+                let next = if pieces.len() == 1 {
+                    0
+                } else {
+                    let known = |(p, around): &(Vec<usize>, usize)| {
+                        border_band(p, &open, rows, cols, search.band).len() as f32 / (*around).max(1) as f32
                     };
-                    if scored.iter().any(whole) {
-                        scored.retain(whole);
+                    let scores: Vec<f32> = pieces.iter().map(known).collect();
+                    (0..pieces.len()).fold(0, |b, j| if scores[j] > scores[b] { j } else { b })
+                };
+                let (piece, _) = pieces.remove(next);
+                // without tiles, a hole is matched on what was observed only, as before tiles
+                let seen = if search.tile == 0 { missing } else { &open };
+                let (frame, shift, offset_px, score) =
+                    self.draw_piece(&piece, codes, seen, &pasted, looks, hints, search, rng);
+                let grid = self.frame(frame);
+                let cut = match plain {
+                    Some(plain) if search.whole_objects => cut_objects(grid, [rows, cols], shift, codes, seen, plain),
+                    _ => Vec::new(),
+                };
+                for &i in &piece {
+                    let mut s = shifted_cell(i, shift, [rows, cols]);
+                    if cut.get(s).copied().unwrap_or(false) {
+                        // the row's nearest ground in the bank frame, else the object's cell
+                        let (y, x) = (s / cols, s % cols);
+                        let plain = plain.unwrap_or(&[]);
+                        let ground =
+                            (1..cols).flat_map(|d| [x.checked_sub(d), Some(x + d).filter(|&v| v < cols)]).find_map(
+                                |v| v.filter(|&v| plain.get(grid[y * cols + v] as usize).copied().unwrap_or(false)),
+                            );
+                        if let Some(v) = ground {
+                            s = y * cols + v;
+                        }
                     }
+                    codes[i] = grid[s] as u32;
+                    sources.push([i, frame, s]);
+                    pasted[i] = Some(Pasted { frame, cell: s, offset_px });
+                    open[i] = false;
                 }
-                if let Some(distance) = hints.band_distance {
-                    // the best matches by the codes' looks, ranked again by the band's pixels
-                    keep_best(&mut scored, PIXEL_CANDIDATES);
-                    for c in scored.iter_mut() {
-                        c.0 = distance(c.1, c.2, &band);
-                    }
-                }
-                if let (Some(plain), true) = (plain, search.whole_objects) {
-                    // of the best matches, those whose objects the hole would cut pay for it:
-                    // the draw prefers a placement whose objects fit the hole whole
-                    keep_best(&mut scored, CUT_CANDIDATES);
-                    for c in scored.iter_mut() {
-                        let cut = cut_objects(self.frame(c.1), [rows, cols], c.2, codes, missing, plain);
-                        let n = hole.iter().filter(|&&i| cut[shifted_cell(i, c.2, [rows, cols])]).count();
-                        c.0 += CUT_PENALTY * n as f32 / hole.len() as f32;
-                    }
-                }
-                let k = search.top_k.clamp(1, scored.len());
-                keep_best(&mut scored, k);
-                scored.sort_by(by_score);
-                // softmax over the k best by score, at temperature `search.tau`: a hole whose
-                // border continues one bank frame (an object re-rendered from an earlier step)
-                // takes that frame; a hole on plain ground draws among many near-equal matches
-                let best = scored[0].0;
-                let weights: Vec<f32> =
-                    scored[..k].iter().map(|c| (-(c.0 - best) / search.tau.max(1e-6)).exp()).collect();
-                let total: f32 = weights.iter().sum();
-                let mut u = rng.random_range(0.0..total.max(f32::MIN_POSITIVE));
-                let mut pick = k - 1;
-                for (j, w) in weights.iter().enumerate() {
-                    if u < *w {
-                        pick = j;
-                        break;
-                    }
-                    u -= w;
-                }
-                let (s, f, shift) = scored[pick];
-                (f, shift, s)
-            };
-            let grid = self.frame(frame);
-            let cut = match plain {
-                Some(plain) if search.whole_objects => cut_objects(grid, [rows, cols], shift, codes, missing, plain),
-                _ => Vec::new(),
-            };
-            for &i in &hole {
-                let mut s = shifted_cell(i, shift, [rows, cols]);
-                if cut.get(s).copied().unwrap_or(false) {
-                    // the row's nearest ground in the bank frame, else the object's cell
-                    let (y, x) = (s / cols, s % cols);
-                    let plain = plain.unwrap_or(&[]);
-                    let ground = (1..cols)
-                        .flat_map(|d| [x.checked_sub(d), Some(x + d).filter(|&v| v < cols)])
-                        .find_map(|v| v.filter(|&v| plain.get(grid[y * cols + v] as usize).copied().unwrap_or(false)));
-                    if let Some(v) = ground {
-                        s = y * cols + v;
-                    }
-                }
-                codes[i] = grid[s] as u32;
-                sources.push([i, frame, s]);
+                draws.push(BankDraw { frame, shift, score, cells: piece.len(), hole: holes, offset_px });
             }
-            draws.push(BankDraw { frame, shift, score, cells: hole.len() });
+            holes += 1;
         }
         BankFill { draws, deferred, sources }
     }
+
+    /// The bank frame and shift one piece of a hole takes, and its score: the draw among the
+    /// best matches of the known cells around the piece (`open`: cells without content yet;
+    /// `pasted`: what the cells filled before took).
+    #[allow(clippy::too_many_arguments)]
+    fn draw_piece(
+        &self,
+        piece: &[usize],
+        codes: &[u32],
+        open: &[bool],
+        pasted: &[Option<Pasted>],
+        looks: &[[f32; 4]],
+        hints: &FillHints<'_>,
+        search: &BankSearch,
+        rng: &mut impl Rng,
+    ) -> (usize, [i32; 2], [i32; 2], f32) {
+        let (rows, cols) = (self.rows, self.cols);
+        let look = |c: u32| looks.get(c as usize).copied().unwrap_or([0.0; 4]);
+        let band = border_band(piece, open, rows, cols, search.band);
+        if band.is_empty() {
+            return (rng.random_range(0..self.len()), [0, 0], [0, 0], f32::NAN);
+        }
+        // horizontal shifts that keep the piece inside the bank frame (a row fixes the
+        // ground's planar depth, a column does not), at most `max_shift_x` either way
+        let (x_lo, x_hi) = piece.iter().fold((cols as i32, 0), |(lo, hi), &i| {
+            let x = (i % cols) as i32;
+            (lo.min(x), hi.max(x))
+        });
+        let (dx_lo, dx_hi) = ((-x_lo).max(-search.max_shift_x), (cols as i32 - 1 - x_hi).min(search.max_shift_x));
+        let shifts: Vec<[i32; 2]> = (-search.max_shift_y..=search.max_shift_y)
+            .flat_map(|dy| (dx_lo.min(0)..=dx_hi.max(0)).map(move |dx| [dy, dx]))
+            .collect();
+        let query: Vec<(i32, i32, [f32; 4])> =
+            band.iter().map(|&i| ((i / cols) as i32, (i % cols) as i32, look(codes[i]))).collect();
+        let mut scored: Vec<Match> = (0..self.len())
+            .into_par_iter()
+            .flat_map_iter(|f| {
+                let grid = self.frame(f);
+                let query = &query;
+                shifts.iter().map(move |&[dy, dx]| {
+                    let mut s = 0.0f32;
+                    for &(y, x, q) in query {
+                        let (by, bx) = (y + dy, x + dx);
+                        s += if by < 0 || bx < 0 || by >= rows as i32 || bx >= cols as i32 {
+                            OUT_OF_FRAME
+                        } else {
+                            let b = look(grid[by as usize * cols + bx as usize] as u32);
+                            (0..4).map(|k| (q[k] - b[k]).abs()).sum::<f32>()
+                        };
+                    }
+                    (s / query.len() as f32, f, [dy, dx], [0, 0])
+                })
+            })
+            .collect();
+        if let Some(usable) = hints.source_usable {
+            // a match that would take a cell with nothing whole behind it is passed over
+            let whole = |c: &Match| piece.iter().all(|&i| usable(c.1, shifted_cell(i, c.2, [rows, cols])));
+            if scored.iter().any(whole) {
+                scored.retain(whole);
+            }
+        }
+        if let Some(distance) = hints.band_distance {
+            // the best matches by the codes' looks, ranked again by the band's pixels
+            keep_best(&mut scored, PIXEL_CANDIDATES);
+            let band_pasted: Vec<Option<Pasted>> = band.iter().map(|&i| pasted[i]).collect();
+            scored.par_iter_mut().for_each(|c| c.0 = distance(c.1, c.2, [0, 0], &band, &band_pasted));
+            let r = hints.pixel_offsets;
+            if r > 0 {
+                // the best of them also at every pixel offset within `r`: a band the camera
+                // moved by part of a cell is continued in step, not by the nearest cell
+                // (every second offset, then the 8 around the best of them)
+                keep_best(&mut scored, OFFSET_CANDIDATES);
+                let coarse: Vec<[i32; 2]> = (-r..=r)
+                    .step_by(2)
+                    .flat_map(|oy| (-r..=r).step_by(2).map(move |ox| [oy, ox]))
+                    .filter(|o| *o != [0, 0])
+                    .collect();
+                scored.par_iter_mut().for_each(|c| {
+                    let try_at = |c: &mut Match, o: [i32; 2]| {
+                        let d = distance(c.1, c.2, o, &band, &band_pasted);
+                        if d < c.0 {
+                            (c.0, c.3) = (d, o);
+                        }
+                    };
+                    for &o in &coarse {
+                        try_at(c, o);
+                    }
+                    let [oy, ox] = c.3;
+                    for o in [-1, 0, 1].into_iter().flat_map(|dy| [-1, 0, 1].map(|dx| [oy + dy, ox + dx])) {
+                        if o != [oy, ox] && o[0].abs() <= r && o[1].abs() <= r {
+                            try_at(c, o);
+                        }
+                    }
+                });
+            }
+        }
+        if let (Some(plain), true) = (hints.plain, search.whole_objects) {
+            // of the best matches, those whose objects the piece would cut pay for it: the draw
+            // prefers a placement whose objects fit the hole whole
+            keep_best(&mut scored, CUT_CANDIDATES);
+            for c in scored.iter_mut() {
+                let cut = cut_objects(self.frame(c.1), [rows, cols], c.2, codes, open, plain);
+                let n = piece.iter().filter(|&&i| cut[shifted_cell(i, c.2, [rows, cols])]).count();
+                c.0 += CUT_PENALTY * n as f32 / piece.len() as f32;
+            }
+        }
+        let k = search.top_k.clamp(1, scored.len());
+        keep_best(&mut scored, k);
+        scored.sort_by(by_score);
+        // softmax over the k best by score, at temperature `search.tau`: a hole whose border
+        // continues one bank frame (an object re-rendered from an earlier step) takes that
+        // frame; a hole on plain ground draws among many near-equal matches
+        let best = scored[0].0;
+        let weights: Vec<f32> = scored[..k].iter().map(|c| (-(c.0 - best) / search.tau.max(1e-6)).exp()).collect();
+        let total: f32 = weights.iter().sum();
+        let mut u = rng.random_range(0.0..total.max(f32::MIN_POSITIVE));
+        let mut pick = k - 1;
+        for (j, w) in weights.iter().enumerate() {
+            if u < *w {
+                pick = j;
+                break;
+            }
+            u -= w;
+        }
+        let (s, f, shift, offset) = scored[pick];
+        (f, shift, offset, s)
+    }
 }
 
+/// A match: its score, the bank frame, the shift in cells, the pixel offset.
+type Match = (f32, usize, [i32; 2], [i32; 2]);
+
 /// A match's order: lower score first, then the lower frame (a deterministic order for ties).
-fn by_score(a: &(f32, usize, [i32; 2]), b: &(f32, usize, [i32; 2])) -> std::cmp::Ordering {
+fn by_score(a: &Match, b: &Match) -> std::cmp::Ordering {
     a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
 }
 
 /// Keeps the `n` best of `scored` (in no particular order).
-fn keep_best(scored: &mut Vec<(f32, usize, [i32; 2])>, n: usize) {
+fn keep_best(scored: &mut Vec<Match>, n: usize) {
     let n = n.clamp(1, scored.len().max(1));
     if scored.len() > n {
         scored.select_nth_unstable_by(n - 1, by_score);
@@ -492,8 +610,15 @@ pub struct FillHints<'a> {
     /// The distance between a hole's border band (its cells) and bank frame `frame` shifted by
     /// `shift`, measured on pixels (a seed's bank, whose pixels are known): the best matches by
     /// the codes' looks are ranked again by it, as image quilting matches the overlap's pixels.
+    /// Its arguments: the bank frame, the shift, a pixel offset (the source's pixels are taken
+    /// that many pixels `[down, right]` of its cells), the band's cells and, per band cell,
+    /// what a tile filled before took there ([`BankSearch::tile`]): its pixels are those of
+    /// that source.
     #[allow(clippy::type_complexity)]
-    pub band_distance: Option<&'a (dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)>,
+    pub band_distance: Option<&'a (dyn Fn(usize, [i32; 2], [i32; 2], &[usize], &[Option<Pasted>]) -> f32 + Sync)>,
+    /// With `band_distance`: the best matches are tried at every pixel offset up to this many
+    /// pixels each way (0: none).
+    pub pixel_offsets: i32,
     /// Whether cell `cell` of bank frame `frame` may give its content to a hole (a seed's bank:
     /// its pixels are all there, [`BankPixels::complete_cells`]). A match that would take any of
     /// its hole's cells from an unusable one is passed over, unless every match would.
@@ -509,6 +634,10 @@ impl std::fmt::Debug for FillHints<'_> {
             .finish()
     }
 }
+
+/// With [`FillHints::pixel_offsets`]: how many of the best matches by pixels are tried at
+/// pixel offsets.
+const OFFSET_CANDIDATES: usize = 8;
 
 /// With [`FillHints::band_distance`]: how many of the best matches by looks are ranked again.
 const PIXEL_CANDIDATES: usize = 64;
@@ -534,6 +663,45 @@ fn thin_at_border(hole: &[usize], rows: usize, cols: usize, thinner_than: usize)
     let (tall, wide) = (y1 + 1 - y0, x1 + 1 - x0);
     let (at_side, at_top_or_bottom) = (x0 == 0 || x1 + 1 == cols, y0 == 0 || y1 + 1 == rows);
     (at_side && wide < thinner_than) || (at_top_or_bottom && tall < thinner_than)
+}
+
+/// Per cell: whether it belongs to a run of `missing` cells that starts at a side of the frame
+/// (along its row from the left or right side, along its column from the top or bottom) and
+/// is shorter than `thinner_than`, or to a group of missing cells left over by those runs
+/// that lies within `thinner_than - 1` cells of the sides (where two bands meet).
+fn border_runs(missing: &[bool], rows: usize, cols: usize, thinner_than: usize) -> Vec<bool> {
+    let mut out = vec![false; rows * cols];
+    let mut mark = |cells: &mut dyn Iterator<Item = usize>| {
+        let run: Vec<usize> = cells.take_while(|&i| missing[i]).take(thinner_than).collect();
+        if run.len() < thinner_than {
+            for i in run {
+                out[i] = true;
+            }
+        }
+    };
+    for y in 0..rows {
+        mark(&mut (0..cols).map(|x| y * cols + x));
+        mark(&mut (0..cols).rev().map(|x| y * cols + x));
+    }
+    for x in 0..cols {
+        mark(&mut (0..rows).map(|y| y * cols + x));
+        mark(&mut (0..rows).rev().map(|y| y * cols + x));
+    }
+    // what is left of the runs where two bands meet (a corner's cells, whose row and column
+    // are both long runs) waits with them: a piece no deeper than such bands are
+    let rest: Vec<bool> = missing.iter().zip(&out).map(|(m, o)| *m && !o).collect();
+    for piece in components(&rest, rows, cols) {
+        let near = piece.iter().all(|&i| {
+            let (y, x) = (i / cols, i % cols);
+            y.min(rows - 1 - y).min(x).min(cols - 1 - x) + 1 < thinner_than
+        });
+        if near {
+            for i in piece {
+                out[i] = true;
+            }
+        }
+    }
+    out
 }
 
 /// The 4-connected components of `missing`, each as its cells in ascending order, ordered by
@@ -573,6 +741,30 @@ pub fn components(missing: &[bool], rows: usize, cols: usize) -> Vec<Vec<usize>>
         out.push(cells);
     }
     out
+}
+
+/// `hole` (cells of a `cols`-wide grid) cut into `tile x tile` tiles from its bounding box's
+/// corner, in reading order; the whole hole when `tile` is 0 or it fits one tile.
+fn tiles(hole: &[usize], cols: usize, tile: usize) -> Vec<Vec<usize>> {
+    if tile == 0 || hole.len() <= tile * tile {
+        return vec![hole.to_vec()];
+    }
+    let (y0, x0) = hole.iter().fold((usize::MAX, usize::MAX), |(y, x), &i| (y.min(i / cols), x.min(i % cols)));
+    let mut by_tile: std::collections::BTreeMap<(usize, usize), Vec<usize>> = Default::default();
+    for &i in hole {
+        by_tile.entry(((i / cols - y0) / tile, (i % cols - x0) / tile)).or_default().push(i);
+    }
+    by_tile.into_values().collect()
+}
+
+/// How many cells lie within `width` cells (Chebyshev) of `piece` and outside it: the band
+/// [`border_band`] gives when every one of them is visible.
+fn band_cells(piece: &[usize], rows: usize, cols: usize, width: usize) -> usize {
+    let mut inside = vec![false; rows * cols];
+    for &i in piece {
+        inside[i] = true;
+    }
+    border_band(piece, &inside, rows, cols, width).len()
 }
 
 /// The visible cells within `width` cells (Chebyshev) of `hole`, ascending.
@@ -703,14 +895,15 @@ mod tests {
             missing[i] = true;
         }
         // the pixels say frame 1 continues the band, frame 0 does not
-        let distance = |frame: usize, _shift: [i32; 2], band: &[usize]| {
-            assert!(!band.is_empty() && band.iter().all(|&c| !missing[c]));
-            if frame == 1 {
-                0.0
-            } else {
-                0.5
-            }
-        };
+        let distance =
+            |frame: usize, _shift: [i32; 2], _offset: [i32; 2], band: &[usize], _pasted: &[Option<Pasted>]| {
+                assert!(!band.is_empty() && band.iter().all(|&c| !missing[c]));
+                if frame == 1 {
+                    0.0
+                } else {
+                    0.5
+                }
+            };
         let hints = FillHints { band_distance: Some(&distance), ..Default::default() };
         let search = BankSearch { min_cells: 1, ..Default::default() };
         for seed in 0..16 {
@@ -825,5 +1018,135 @@ mod tests {
         let seen: std::collections::HashSet<usize> = (0..40).map(draw).collect();
         assert!(seen.len() >= 4, "{seen:?}");
         assert_eq!(draw(7), draw(7));
+    }
+
+    #[test]
+    fn tiles_cut_a_hole_from_its_corner_and_cover_it_once() {
+        let cols = 10;
+        let hole: Vec<usize> = (2..5).flat_map(|y| (1..10).map(move |x| y * cols + x)).collect();
+        let pieces = tiles(&hole, cols, 4);
+        assert_eq!(pieces.iter().map(Vec::len).collect::<Vec<_>>(), [12, 12, 3]);
+        let mut all: Vec<usize> = pieces.concat();
+        all.sort_unstable();
+        assert_eq!(all, hole);
+        for p in &pieces {
+            let xs: Vec<usize> = p.iter().map(|i| i % cols).collect();
+            assert!(xs.iter().max().unwrap() - xs.iter().min().unwrap() < 4, "{p:?}");
+        }
+        assert_eq!(tiles(&hole, cols, 0), vec![hole.clone()]);
+        assert_eq!(tiles(&hole[..16], cols, 4), [hole[..16].to_vec()]);
+    }
+
+    #[test]
+    fn runs_from_the_sides_shorter_than_the_limit_wait_and_no_other_cell() {
+        let (rows, cols) = (8usize, 8usize);
+        let mut missing = vec![false; rows * cols];
+        for y in 0..rows {
+            missing[y * cols + 6] = true;
+            missing[y * cols + 7] = true;
+        }
+        // a crack from the band into the frame along row 4, and a run of 3 from the left side
+        for x in 2..6 {
+            missing[4 * cols + x] = true;
+        }
+        for x in 0..3 {
+            missing[2 * cols + x] = true;
+        }
+        let runs = border_runs(&missing, rows, cols, 3);
+        let marked: Vec<usize> = (0..rows * cols).filter(|&i| runs[i]).collect();
+        // the corner where a top row band meets the right band waits with them
+        let mut l = vec![false; rows * cols];
+        for i in 0..rows * cols {
+            l[i] = i % cols == cols - 1 || i / cols == 0;
+        }
+        assert!(border_runs(&l, rows, cols, 3).iter().zip(&l).all(|(r, m)| r == m));
+        let expected: Vec<usize> = (0..rows).filter(|&y| y != 4).flat_map(|y| [y * cols + 6, y * cols + 7]).collect();
+        assert_eq!(marked, expected);
+        // in the bank's fill they wait, and the crack (with the band's cells on its row) is filled
+        let bank = CodeBank { rows, cols, n_embed: 64, codebook_crc32: 0, codes: (0..64u16).collect() };
+        let search = BankSearch { defer_runs: true, min_cells: 1, ..Default::default() };
+        let mut codes = vec![0u32; rows * cols];
+        let fill = bank.fill(&mut codes, &missing, &looks(64), &search, &mut ChaCha8Rng::seed_from_u64(1));
+        assert_eq!(fill.deferred, expected);
+        let filled: usize = fill.draws.iter().map(|d| d.cells).sum();
+        assert_eq!(filled, missing.iter().filter(|m| **m).count() - expected.len());
+    }
+
+    #[test]
+    fn a_band_quilted_as_tiles_continues_each_tiles_own_neighbours() {
+        let (rows, cols) = (8usize, 8usize);
+        let n = rows * cols;
+        // bank frame 0: code 1 above, 7 below; frame 1: code 3 above, 2 below. As one piece the
+        // band's border (1 above, 2 below) is nearer frame 1; as tiles, the top tile's border
+        // is mostly frame 0's, the bottom tile's (with the top tile's cells) frame 1's
+        let half = |top: u16, bottom: u16| (0..n).map(move |i| if i / cols < 4 { top } else { bottom });
+        let bank =
+            CodeBank { rows, cols, n_embed: 64, codebook_crc32: 0, codes: half(1, 7).chain(half(3, 2)).collect() };
+        // the frame: 1 above, 2 below, its three right columns missing
+        let missing: Vec<bool> = (0..n).map(|i| i % cols >= 5).collect();
+        let fresh = || -> Vec<u32> { half(1, 2).map(u32::from).collect() };
+        let search = BankSearch {
+            band: 1,
+            top_k: 1,
+            max_shift_x: 0,
+            max_shift_y: 0,
+            min_cells: 1,
+            defer_thinner_than: 0,
+            tile: 4,
+            ..Default::default()
+        };
+        let mut codes = fresh();
+        let fill = bank.fill(&mut codes, &missing, &looks(64), &search, &mut ChaCha8Rng::seed_from_u64(3));
+        assert_eq!(fill.draws.iter().map(|d| (d.frame, d.cells, d.hole)).collect::<Vec<_>>(), [(0, 12, 0), (1, 12, 0)]);
+        assert_eq!(codes, fresh(), "every tile takes what continues its neighbours");
+        // in one piece, the hole takes one frame and half of it is wrong
+        let mut codes = fresh();
+        let fill = bank.fill(
+            &mut codes,
+            &missing,
+            &looks(64),
+            &BankSearch { tile: 0, ..search },
+            &mut ChaCha8Rng::seed_from_u64(3),
+        );
+        assert_eq!(fill.draws.len(), 1);
+        assert_eq!(codes.iter().zip(fresh()).filter(|(a, b)| **a != *b).count(), 12);
+    }
+
+    #[test]
+    fn a_tiles_band_distance_sees_what_the_tiles_before_it_took() {
+        let (rows, cols) = (8usize, 8usize);
+        let bank =
+            CodeBank { rows, cols, n_embed: 64, codebook_crc32: 0, codes: (0..2 * 64u16).map(|c| c % 64).collect() };
+        let missing: Vec<bool> = (0..rows * cols).map(|i| i % cols >= 5).collect();
+        let calls = std::sync::Mutex::new(Vec::new());
+        let distance =
+            |frame: usize, _shift: [i32; 2], _offset: [i32; 2], band: &[usize], pasted: &[Option<Pasted>]| {
+                assert_eq!(band.len(), pasted.len());
+                calls.lock().unwrap().push((band.to_vec(), pasted.to_vec()));
+                frame as f32
+            };
+        let hints = FillHints { band_distance: Some(&distance), ..Default::default() };
+        let search =
+            BankSearch { band: 1, top_k: 1, min_cells: 1, defer_thinner_than: 0, tile: 4, ..Default::default() };
+        let mut codes: Vec<u32> = (0..64).collect();
+        let fill = bank.fill_with(&mut codes, &missing, &looks(64), &hints, &search, &mut ChaCha8Rng::seed_from_u64(5));
+        assert_eq!(fill.draws.len(), 2);
+        let first = fill.draws[0];
+        let calls = calls.into_inner().unwrap();
+        let mut saw_pasted = false;
+        for (band, pasted) in &calls {
+            for (cell, p) in band.iter().zip(pasted) {
+                match p {
+                    Some(p) => {
+                        assert!(missing[*cell], "cell {cell} was observed");
+                        assert_eq!((p.frame, p.offset_px), (first.frame, first.offset_px));
+                        assert_eq!(p.cell, shifted_cell(*cell, first.shift, [rows, cols]));
+                        saw_pasted = true;
+                    }
+                    None => assert!(!missing[*cell], "cell {cell}: filled before, but no source"),
+                }
+            }
+        }
+        assert!(saw_pasted, "the second tile's band holds the first tile's cells");
     }
 }

@@ -12,7 +12,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use sgam_core::{Guidance, Image, Intrinsics, Refiner, RgbdFrame};
 
-use crate::bank::{BankDraw, BankFill, BankPixels, BankSearch, CodeBank, FillHints};
+use crate::bank::{BankDraw, BankFill, BankPixels, BankSearch, CodeBank, FillHints, Pasted};
 use crate::config::ModelConfig;
 use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
@@ -115,6 +115,11 @@ pub struct RefinerOptions {
     /// ([`crate::bank::BankSearch::whole_objects`]).
     #[serde(default)]
     pub whole_objects: bool,
+    /// With a seed's pixel bank: holes larger than this many cells a side are quilted as tiles
+    /// of this side ([`crate::bank::BankSearch::tile`]); 0, as runs made before it, quilts a
+    /// hole in one piece.
+    #[serde(default)]
+    pub quilt_tile: usize,
 }
 
 fn default_cells_per_pass() -> usize {
@@ -140,6 +145,7 @@ impl Default for RefinerOptions {
             max_passes: default_max_passes(),
             within_class_temperature: None,
             whole_objects: false,
+            quilt_tile: 0,
         }
     }
 }
@@ -310,18 +316,27 @@ impl VqRefiner {
             let plain = if self.options.whole_objects { Some(self.plain_codes()?.to_vec()) } else { None };
             self.code_looks()?;
             let (bank, looks) = (self.bank.as_deref(), self.looks.as_deref());
+            // quilting pixels as tiles: bands wait as runs, tiles are matched at pixel offsets
+            let tiled = quilt_pixels && self.options.quilt_tile > 0;
             // quilting pixels, every hole is filled: a one-cell hole keeps no decoder drawing
             let search = BankSearch {
                 min_cells: if quilt_pixels { 1 } else { BankSearch::default().min_cells },
                 whole_objects: self.options.whole_objects,
+                tile: if tiled { self.options.quilt_tile } else { 0 },
+                defer_runs: tiled,
                 ..BankSearch::default()
             };
-            let fill = match (bank, looks) {
+            let (fill, provisional) = match (bank, looks) {
                 (Some(bank), Some(looks)) => {
                     // with the bank's pixels, the best matches are ranked again on the band's pixels
+                    let block = if tiled { BAND_BLOCK_PX } else { 1 };
                     let distance = self.bank_pixels.as_deref().filter(|_| quilt_pixels).map(|p| {
-                        move |frame: usize, shift: [i32; 2], band: &[usize]| {
-                            band_pixel_distance(&work, bank, p, f, frame, shift, band)
+                        move |frame: usize,
+                              shift: [i32; 2],
+                              offset: [i32; 2],
+                              band: &[usize],
+                              pasted: &[Option<Pasted>]| {
+                            band_pixel_distance(&work, bank, p, f, (frame, shift, offset), band, pasted, block)
                         }
                     });
                     // with the bank's pixels, a hole takes no cell that has pixels missing (a
@@ -334,14 +349,32 @@ impl VqRefiner {
                     });
                     let hints = FillHints {
                         plain: plain.as_deref(),
-                        band_distance: distance
-                            .as_ref()
-                            .map(|d| d as &(dyn Fn(usize, [i32; 2], &[usize]) -> f32 + Sync)),
+                        band_distance: distance.as_ref().map(|d| {
+                            d as &(dyn Fn(usize, [i32; 2], [i32; 2], &[usize], &[Option<Pasted>]) -> f32 + Sync)
+                        }),
+                        pixel_offsets: if tiled { (f / 2) as i32 } else { 0 },
                         source_usable: complete.as_ref().map(|u| u as &(dyn Fn(usize, usize) -> bool + Sync)),
                     };
-                    bank.fill_with(&mut codes, &cells, looks, &hints, &search, &mut self.rng)
+                    let fill = bank.fill_with(&mut codes, &cells, looks, &hints, &search, &mut self.rng);
+                    // the bands that wait are coloured from the seed too (their depth goes
+                    // below), also with the decoder's colour: the code head's codes there are
+                    // not the seed's, and their drawing would reach later frames through the
+                    // colour warp
+                    let provisional = (self.bank_pixels.is_some() && !fill.deferred.is_empty()).then(|| {
+                        let mut waiting = vec![false; cells.len()];
+                        for &c in &fill.deferred {
+                            waiting[c] = true;
+                        }
+                        let mut scratch = codes.clone();
+                        let now = BankSearch { defer_thinner_than: 0, defer_runs: false, ..search };
+                        // matched on the pixels as well when quilting tiles (one piece per hole,
+                        // as before tiles, by the codes' looks)
+                        let hints = if tiled { hints } else { FillHints::default() };
+                        bank.fill_with(&mut scratch, &waiting, looks, &hints, &now, &mut self.rng)
+                    });
+                    (fill, provisional)
                 }
-                _ => BankFill::default(),
+                _ => (BankFill::default(), None),
             };
             let colour_from_decoder = quilt_pixels && self.bank_colour_from_decoder;
             let mut out = if quilt_pixels && !colour_from_decoder {
@@ -356,22 +389,10 @@ impl VqRefiner {
                 }
                 out
             };
-            if let (Some(bank), Some(pixels), Some(looks)) =
-                (self.bank.as_deref(), self.bank_pixels.as_deref(), self.looks.as_deref())
-            {
+            if let (Some(bank), Some(pixels)) = (self.bank.as_deref(), self.bank_pixels.as_deref()) {
                 paste_sources(&mut out, missing, &fill, bank, pixels, f, !colour_from_decoder);
-                // the bands that wait are coloured from the seed too (their depth goes below),
-                // also with the decoder's colour: the code head's codes there are not the seed's,
-                // and their drawing would reach later frames through the colour warp
-                if !fill.deferred.is_empty() {
-                    let mut waiting = vec![false; cells.len()];
-                    for &c in &fill.deferred {
-                        waiting[c] = true;
-                    }
-                    let mut scratch = codes.clone();
-                    let now = BankSearch { defer_thinner_than: 0, ..search };
-                    let provisional = bank.fill(&mut scratch, &waiting, looks, &now, &mut self.rng);
-                    paste_sources(&mut out, missing, &provisional, bank, pixels, f, true);
+                if let Some(provisional) = &provisional {
+                    paste_sources(&mut out, missing, provisional, bank, pixels, f, true);
                 }
             }
             // deferred cells keep their provisional colour and no depth: nothing is fused there
@@ -947,21 +968,41 @@ impl Refiner for VqRefiner {
     }
 }
 
+/// With tiles ([`RefinerOptions::quilt_tile`]), a band is compared with a candidate by the mean
+/// colours of `BAND_BLOCK_PX x BAND_BLOCK_PX` blocks, not pixel by pixel: a texture continued a
+/// pixel or two out of step (the band was warped and resampled since it was pasted) then costs
+/// little, where pixel by pixel a smooth candidate (a road, a lawn) beat it, and spread
+/// (docs/MODEL.md, session 22).
+const BAND_BLOCK_PX: usize = 4;
+
+/// The pixel of base frame `base` at `[y, x]` of cell-aligned coordinates moved by `offset`
+/// pixels, clamped to the frame: its index.
+fn offset_index(base: &RgbdFrame, y: usize, x: usize, offset: [i32; 2]) -> usize {
+    let (bw, bh) = (base.width() as i64, base.height() as i64);
+    let yy = (y as i64 + offset[0] as i64).clamp(0, bh - 1);
+    let xx = (x as i64 + offset[1] as i64).clamp(0, bw - 1);
+    (yy * bw + xx) as usize
+}
+
 /// Mean colour distance (L1 over R, G, B, divided by 3) between the pixels of the border band
 /// cells `band` of `frame` (padded to the grid) and the pixels behind bank frame `bank_frame`
-/// shifted by `shift`, `f x f` per cell; a cell the shift moves out of the bank frame counts 1.
+/// shifted by `shift` cells and `offset` pixels, `f x f` per cell, compared as the mean colours
+/// of `block x block` blocks (1: pixel by pixel); a cell the shift moves out of the bank frame
+/// counts 1. A band cell filled earlier in the same completion (`pasted[j]`)
+/// has the pixels of its source, which `frame` does not hold yet.
 fn band_pixel_distance(
     frame: &RgbdFrame,
     bank: &CodeBank,
     pixels: &BankPixels,
     f: usize,
-    bank_frame: usize,
-    shift: [i32; 2],
+    (bank_frame, shift, offset): (usize, [i32; 2], [i32; 2]),
     band: &[usize],
+    pasted: &[Option<Pasted>],
+    block: usize,
 ) -> f32 {
     let w = frame.width() as usize;
     let (mut sum, mut n) = (0.0f32, 0usize);
-    for &cell in band {
+    for (j, &cell) in band.iter().enumerate() {
         let (y, x) = ((cell / bank.cols) as i32 + shift[0], (cell % bank.cols) as i32 + shift[1]);
         if y < 0 || x < 0 || y >= bank.rows as i32 || x >= bank.cols as i32 {
             sum += (f * f) as f32;
@@ -971,14 +1012,43 @@ fn band_pixel_distance(
         let Some((base, [sy, sx])) = pixels.source(bank, bank_frame, y as usize * bank.cols + x as usize) else {
             continue;
         };
-        let bw = base.width() as usize;
-        let (cy, cx) = (cell / bank.cols, cell % bank.cols);
-        for dy in 0..f {
-            for dx in 0..f {
-                let (a, b) = ((cy * f + dy) * w + cx * f + dx, (sy * f + dy) * bw + sx * f + dx);
-                let (Some(p), Some(q)) = (frame.colour.data.get(a), base.colour.data.get(b)) else { continue };
-                sum += ((p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()) / 3.0;
-                n += 1;
+        // the band cell's own pixels: the frame's, or those of what was pasted there
+        let own = match pasted.get(j).copied().flatten() {
+            Some(p) => match pixels.source(bank, p.frame, p.cell) {
+                Some((b, at)) => Some((b, at, p.offset_px)),
+                None => continue,
+            },
+            None => None,
+        };
+        let blk = block.clamp(1, f);
+        for by in (0..f).step_by(blk) {
+            for bx in (0..f).step_by(blk) {
+                let (mut mp, mut mq, mut k) = ([0.0f32; 3], [0.0f32; 3], 0usize);
+                for dy in by..(by + blk).min(f) {
+                    for dx in bx..(bx + blk).min(f) {
+                        let q = &base.colour.data[offset_index(base, sy * f + dy, sx * f + dx, offset)];
+                        let p = match own {
+                            Some((b, [oy, ox], o)) => &b.colour.data[offset_index(b, oy * f + dy, ox * f + dx, o)],
+                            None => {
+                                let (cy, cx) = (cell / bank.cols, cell % bank.cols);
+                                match frame.colour.data.get((cy * f + dy) * w + cx * f + dx) {
+                                    Some(p) => p,
+                                    None => continue,
+                                }
+                            }
+                        };
+                        for c in 0..3 {
+                            mp[c] += p[c];
+                            mq[c] += q[c];
+                        }
+                        k += 1;
+                    }
+                }
+                if k > 0 {
+                    let d: f32 = (0..3).map(|c| (mp[c] - mq[c]).abs()).sum::<f32>() / (3 * k) as f32;
+                    sum += d * k as f32;
+                    n += k;
+                }
             }
         }
     }
@@ -990,13 +1060,13 @@ fn band_pixel_distance(
 }
 
 /// Copies into the missing pixels of `out` the pixels behind each quilted cell's source
-/// (`[cell, bank frame, bank cell]`, [`BankFill::sources`], hole after hole as `draws` count
-/// them): an `f x f` block of colour and depth from the bank's base frame. Blocks past `out`'s
-/// edges (padding) are cut. A hole's depths are scaled to its surroundings: by the median
-/// ratio of the observed depth around it to the source's depth at the same places (the cells
-/// next to the hole's and their sources' neighbours), so a piece of the seed taken from
-/// nearer or farther sits at the depth of the surface it continues. Without `colour` only the
-/// depth is pasted.
+/// (`[cell, bank frame, bank cell]`, [`BankFill::sources`], draw after draw as `draws` count
+/// them, each moved by its draw's pixel offset): an `f x f` block of colour and depth from the
+/// bank's base frame. Blocks past `out`'s edges (padding) are cut. A hole's depths (all its
+/// tiles') are scaled to its surroundings: by the median ratio of the observed depth around it
+/// to the source's depth at the same places (the cells next to the hole's and their sources'
+/// neighbours), so a piece of the seed taken from nearer or farther sits at the depth of the
+/// surface it continues. Without `colour` only the depth is pasted.
 fn paste_sources(
     out: &mut RgbdFrame,
     missing: &[bool],
@@ -1009,14 +1079,19 @@ fn paste_sources(
     let (w, h) = (out.width() as usize, out.height() as usize);
     let (rows, cols) = (bank.rows as i64, bank.cols as i64);
     let valid = sgam_core::is_valid_depth;
+    // every filled cell with its draw's pixel offset: `([cell, bank frame, bank cell], offset)`
+    let mut cells: Vec<([usize; 3], [i32; 2], usize)> = Vec::with_capacity(fill.sources.len());
     let mut rest = &fill.sources[..];
     for draw in &fill.draws {
-        let (hole, after) = rest.split_at(draw.cells.min(rest.len()));
+        let (these, after) = rest.split_at(draw.cells.min(rest.len()));
         rest = after;
-        let in_hole: std::collections::HashSet<usize> = hole.iter().map(|s| s[0]).collect();
+        cells.extend(these.iter().map(|s| (*s, draw.offset_px, draw.hole)));
+    }
+    for hole in cells.chunk_by(|a, b| a.2 == b.2) {
+        let in_hole: std::collections::HashSet<usize> = hole.iter().map(|s| s.0[0]).collect();
         // the depth ratios around the hole
         let mut ratios = Vec::new();
-        for &[cell, frame, source] in hole {
+        for &([cell, frame, source], offset, _) in hole {
             let (cy, cx) = ((cell / bank.cols) as i64, (cell % bank.cols) as i64);
             let (sy, sx) = ((source / bank.cols) as i64, (source % bank.cols) as i64);
             for (dy, dx) in [(-1i64, 0i64), (1, 0), (0, -1), (0, 1)] {
@@ -1028,15 +1103,14 @@ fn paste_sources(
                     continue;
                 }
                 let Some((base, [by, bx])) = pixels.source(bank, frame, (my * cols + mx) as usize) else { continue };
-                let bw = base.width() as usize;
                 for py in 0..f {
                     for px in 0..f {
                         let (y, x) = (ny as usize * f + py, nx as usize * f + px);
-                        let (qy, qx) = (by * f + py, bx * f + px);
-                        if y >= h || x >= w || qy >= base.height() as usize || qx >= bw || missing[y * w + x] {
+                        if y >= h || x >= w || missing[y * w + x] {
                             continue;
                         }
-                        let (t, s) = (out.depth_m.data[y * w + x], base.depth_m.data[qy * bw + qx]);
+                        let t = out.depth_m.data[y * w + x];
+                        let s = base.depth_m.data[offset_index(base, by * f + py, bx * f + px, offset)];
                         if valid(t) && valid(s) {
                             ratios.push(t / s);
                         }
@@ -1051,22 +1125,81 @@ fn paste_sources(
         } else {
             1.0
         };
-        for &[cell, frame, source] in hole {
+        for &([cell, frame, source], offset, _) in hole {
             let Some((base, [sy, sx])) = pixels.source(bank, frame, source) else { continue };
-            let (bw, bh) = (base.width() as usize, base.height() as usize);
             let (cy, cx) = (cell / bank.cols, cell % bank.cols);
             for dy in 0..f {
                 for dx in 0..f {
-                    let (y, x, by, bx) = (cy * f + dy, cx * f + dx, sy * f + dy, sx * f + dx);
-                    if y >= h || x >= w || by >= bh || bx >= bw || !missing[y * w + x] {
+                    let (y, x) = (cy * f + dy, cx * f + dx);
+                    if y >= h || x >= w || !missing[y * w + x] {
                         continue;
                     }
+                    let b = offset_index(base, sy * f + dy, sx * f + dx, offset);
                     if colour {
-                        out.colour.data[y * w + x] = base.colour.data[by * bw + bx];
+                        out.colour.data[y * w + x] = base.colour.data[b];
                     }
-                    out.depth_m.data[y * w + x] = base.depth_m.data[by * bw + bx] * scale;
+                    out.depth_m.data[y * w + x] = base.depth_m.data[b] * scale;
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A `side x side` frame whose every pixel has its own colour, and depth `depth`.
+    fn textured(side: u32, depth: f32) -> RgbdFrame {
+        let n = (side * side) as usize;
+        let colour =
+            (0..n).map(|i| [(i % 7) as f32 / 7.0, (i % 11) as f32 / 11.0, (i * 3 % 13) as f32 / 13.0]).collect();
+        RgbdFrame {
+            colour: Image { width: side, height: side, data: colour },
+            depth_m: Image { width: side, height: side, data: vec![depth; n] },
+        }
+    }
+
+    #[test]
+    fn a_band_moved_by_part_of_a_cell_matches_at_that_pixel_offset_and_is_pasted_from_there() {
+        let (side, f) = (16u32, 4usize);
+        let w = side as usize;
+        let base = textured(side, 5.0);
+        let bank = CodeBank { rows: 4, cols: 4, n_embed: 1, codebook_crc32: 0, codes: vec![0; 16] };
+        let pixels = BankPixels { bases: vec![base.clone()], roll_cells: [0, 0] };
+        // the frame: the base moved 2 pixels right, twice as far away
+        let mut frame = textured(side, 10.0);
+        for y in 0..w {
+            for x in 2..w {
+                frame.colour.data[y * w + x] = base.colour.data[y * w + x - 2];
+            }
+        }
+        let band = [5, 6, 9, 10];
+        let at = |offset| band_pixel_distance(&frame, &bank, &pixels, f, (0, [0, 0], offset), &band, &[None; 4], 1);
+        assert_eq!(at([0, -2]), 0.0);
+        assert!(at([0, 0]) > 0.05, "{}", at([0, 0]));
+        // a band cell pasted before has its source's pixels, at its offset
+        let pasted = [None, None, None, Some(Pasted { frame: 0, cell: 10, offset_px: [0, -2] })];
+        let d = band_pixel_distance(&frame, &bank, &pixels, f, (0, [0, 0], [0, -2]), &band, &pasted, 1);
+        assert_eq!(d, 0.0);
+        // by blocks' means, in step it is still 0, and a texture out of step costs less than
+        // pixel by pixel
+        let blocks = |offset| band_pixel_distance(&frame, &bank, &pixels, f, (0, [0, 0], offset), &band, &[None; 4], 2);
+        assert_eq!(blocks([0, -2]), 0.0);
+        assert!(blocks([0, -1]) < at([0, -1]), "{} {}", blocks([0, -1]), at([0, -1]));
+        // cell 10 missing, pasted from the same cell 2 pixels left, at the depth around it
+        let missing: Vec<bool> = (0..w * w).map(|p| (p / w) / f == 2 && (p % w) / f == 2).collect();
+        let mut out = frame.clone();
+        for (p, m) in missing.iter().enumerate() {
+            if *m {
+                out.colour.data[p] = [1.0, 0.0, 1.0];
+                out.depth_m.data[p] = 0.0;
+            }
+        }
+        let draw = BankDraw { frame: 0, shift: [0, 0], score: 0.0, cells: 1, hole: 0, offset_px: [0, -2] };
+        let fill = BankFill { draws: vec![draw], deferred: vec![], sources: vec![[10, 0, 10]] };
+        paste_sources(&mut out, &missing, &fill, &bank, &pixels, f, true);
+        assert_eq!(out.colour.data, frame.colour.data);
+        assert!(out.depth_m.data.iter().all(|d| (d - 10.0).abs() < 1e-5));
     }
 }

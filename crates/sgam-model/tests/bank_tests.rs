@@ -222,3 +222,35 @@ fn with_the_banks_pixels_a_band_that_waits_is_coloured_from_them_with_no_depth()
         }
     }
 }
+
+#[test]
+fn quilting_tiles_a_thin_band_turning_a_corner_waits_and_one_piece_quilting_fills_it() {
+    let (w, h) = (32u32, 32u32);
+    let k = Intrinsics::from_fov_x(w, h, 1.0);
+    let frames = [frame(w, h, 70), frame(w, h, 71)];
+    let g = frame(w, h, 11);
+    let run = |quilt_tile: usize| {
+        let (mut r, _) = refiner_and_bank();
+        r.set_options(RefinerOptions { quilt_tile, ..RefinerOptions::default() });
+        let grids: Vec<Vec<u32>> = frames.iter().map(|f| r.frame_codes(f, &k).unwrap()).collect();
+        let side = grids[0].len().isqrt();
+        let f = w / side as u32;
+        let bank = CodeBank::rolled(&grids, [side, side], [0, 2], r.config().n_embed, r.codebook_crc32().unwrap());
+        r.set_bank(Some(Arc::new(bank))).unwrap();
+        r.set_bank_pixels(Some(Arc::new(BankPixels { bases: frames.to_vec(), roll_cells: [0, 2] })));
+        // the right cell column and the top cell row: an L, as one hole neither thin nor short
+        let missing: Vec<bool> = (0..w * h).map(|p| p % w >= w - f || p / w < f).collect();
+        let out = r.complete(&g, &missing).unwrap();
+        (out, missing, r.trace().bank_draws.len())
+    };
+    let (out, missing, draws) = run(4);
+    assert_eq!(draws, 0, "every run of the L from a side is thinner than 3 cells: it waits");
+    for (p, m) in missing.iter().enumerate() {
+        if *m {
+            assert_eq!(out.depth_m.data[p], 0.0, "pixel {p} waits with no depth");
+        }
+    }
+    let (out, missing, draws) = run(0);
+    assert_eq!(draws, 1, "in one piece the L is one hole, filled");
+    assert!(missing.iter().zip(&out.depth_m.data).all(|(m, d)| !m || *d > 0.0));
+}

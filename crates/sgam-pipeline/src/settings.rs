@@ -35,6 +35,10 @@ pub const DEFAULT_WITHIN_TEMPERATURE: f32 = 0.6;
 /// 20-60 new cells take 3-4 passes instead of one, so the cells of one new object see each
 /// other's draws.
 pub const DEFAULT_CELLS_PER_PASS: usize = 8;
+/// Default of `--quilt-tile`, latent cells: chosen between 0 (whole holes, the stripes), 4 and 8
+/// on the three Google Earth seeds and the 7-Scenes frame (60 steps, two run seeds each;
+/// docs/MODEL.md, session 22). 4 let smooth textures (a road, a lawn) spread over the new area.
+pub const DEFAULT_QUILT_TILE: usize = 8;
 /// Default of `--top-k`: 0, all codes (the trained distribution).
 pub const DEFAULT_TOP_K: usize = 0;
 /// Default of `--ground-snap`, metres: below the shortest object of the synthetic world
@@ -480,6 +484,15 @@ pub struct SamplingSettings {
     /// it grew fewer and smaller objects than the bank alone (docs/MODEL.md, session 20).
     #[arg(long)]
     pub whole_objects: bool,
+    /// With a seed's own pixels as the bank (--bank seed, the default for a Google Earth or
+    /// RGB-D seed): a hole larger than N x N latent cells is quilted as N x N tiles, the tile
+    /// with the most known surroundings first, each matched on the pixels around it (tiles
+    /// quilted before it included) at pixel offsets of up to half a cell; the thin bands a
+    /// moving camera uncovers wait, row by row and column by column, until they are 3 cells
+    /// deep. A band then continues what borders it piece by piece, not as one long strip of
+    /// one place. 0 = one piece per hole, as before (vertical stripes on Google Earth seeds).
+    #[arg(long, default_value_t = DEFAULT_QUILT_TILE)]
+    pub quilt_tile: usize,
     /// Run seed (sampling in the refiner): another seed grows another world.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -494,6 +507,7 @@ impl Default for SamplingSettings {
             cells_per_pass: DEFAULT_CELLS_PER_PASS,
             regenerate_observed: false,
             whole_objects: false,
+            quilt_tile: DEFAULT_QUILT_TILE,
             seed: 0,
         }
     }
@@ -506,6 +520,7 @@ impl SamplingSettings {
         in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
         in_range("--within-temperature", self.within_temperature, 0.0..=100.0)?;
         in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
+        in_range("--quilt-tile", self.quilt_tile, 0..=64)?;
         Ok(())
     }
 
@@ -518,6 +533,7 @@ impl SamplingSettings {
             cells_per_pass: self.cells_per_pass,
             within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
             whole_objects: self.whole_objects,
+            quilt_tile: self.quilt_tile,
             ..Default::default()
         }
     }
@@ -1029,6 +1045,16 @@ mod tests {
         assert!((step_m - 3.0 * RGBD_STEP_OF_MEDIAN_DEPTH).abs() < 1e-6, "{step_m}");
         user.path.step = Some(0.25);
         assert_eq!(user.resolve().unwrap().trajectory, TrajectorySpec::Line { step_m: 0.25 });
+        // the seed's pixels are quilted as tiles unless told otherwise
+        let tile = |s: &RunSettings| match s.resolve().unwrap().refiner {
+            RefinerSpec::Model { options, .. } => options.quilt_tile,
+            other => panic!("{other:?}"),
+        };
+        assert_eq!(tile(&user), DEFAULT_QUILT_TILE);
+        user.sampling.quilt_tile = 0;
+        assert_eq!(tile(&user), 0, "given, it is used");
+        user.sampling.quilt_tile = 65;
+        assert!(user.validate().unwrap_err().to_string().contains("--quilt-tile"));
     }
 
     #[test]
