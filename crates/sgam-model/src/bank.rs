@@ -83,6 +83,24 @@ pub struct BankFill {
     pub sources: Vec<[usize; 3]>,
 }
 
+impl BankFill {
+    /// Per cell of a `cells`-cell grid, what this fill put there (its source and pixel offset).
+    pub fn pasted(&self, cells: usize) -> Vec<Option<Pasted>> {
+        let mut out = vec![None; cells];
+        let mut rest = &self.sources[..];
+        for d in &self.draws {
+            let (these, after) = rest.split_at(d.cells.min(rest.len()));
+            rest = after;
+            for &[cell, frame, source] in these {
+                if let Some(o) = out.get_mut(cell) {
+                    *o = Some(Pasted { frame, cell: source, offset_px: d.offset_px });
+                }
+            }
+        }
+        out
+    }
+}
+
 /// The pixels behind a bank's codes, for a bank built from real frames at the run's own size
 /// (a seed's bank): a hole then takes the source frame's pixels, colour and depth, instead of
 /// the decoder's drawing of their codes, which for a frame unlike the model's training data is
@@ -344,7 +362,10 @@ impl CodeBank {
         // cells still without content: a tile filled is known to the tiles after it
         let mut open = missing.to_vec();
         // what each cell filled here took
-        let mut pasted: Vec<Option<Pasted>> = vec![None; rows * cols];
+        let mut pasted: Vec<Option<Pasted>> = match hints.filled {
+            Some(f) if f.len() == rows * cols => f.to_vec(),
+            _ => vec![None; rows * cols],
+        };
         let mut holes = 0;
         let to_fill = if search.defer_runs {
             let runs = border_runs(missing, rows, cols, search.defer_thinner_than);
@@ -623,6 +644,9 @@ pub struct FillHints<'a> {
     /// its pixels are all there, [`BankPixels::complete_cells`]). A match that would take any of
     /// its hole's cells from an unusable one is passed over, unless every match would.
     pub source_usable: Option<&'a (dyn Fn(usize, usize) -> bool + Sync)>,
+    /// Per cell, what an earlier fill of the same frame put there ([`BankFill::pasted`]): a band
+    /// cell with a source has that source's pixels for `band_distance`.
+    pub filled: Option<&'a [Option<Pasted>]>,
 }
 
 impl std::fmt::Debug for FillHints<'_> {
@@ -631,6 +655,7 @@ impl std::fmt::Debug for FillHints<'_> {
             .field("plain", &self.plain.map(<[bool]>::len))
             .field("band_distance", &self.band_distance.is_some())
             .field("source_usable", &self.source_usable.is_some())
+            .field("filled", &self.filled.map(<[Option<Pasted>]>::len))
             .finish()
     }
 }
@@ -688,14 +713,21 @@ fn border_runs(missing: &[bool], rows: usize, cols: usize, thinner_than: usize) 
         mark(&mut (0..rows).rev().map(|y| y * cols + x));
     }
     // what is left of the runs where two bands meet (a corner's cells, whose row and column
-    // are both long runs) waits with them: a piece no deeper than such bands are
+    // are both long runs) waits with them: a piece no deeper than such bands are, at a side or
+    // beside a run that waits (a crack near a side that touches neither is filled)
     let rest: Vec<bool> = missing.iter().zip(&out).map(|(m, o)| *m && !o).collect();
     for piece in components(&rest, rows, cols) {
-        let near = piece.iter().all(|&i| {
+        let side = |y: usize, x: usize| y.min(rows - 1 - y).min(x).min(cols - 1 - x);
+        let near = piece.iter().all(|&i| side(i / cols, i % cols) + 1 < thinner_than);
+        let joined = piece.iter().any(|&i| {
             let (y, x) = (i / cols, i % cols);
-            y.min(rows - 1 - y).min(x).min(cols - 1 - x) + 1 < thinner_than
+            side(y, x) == 0
+                || (y > 0 && out[i - cols])
+                || (y + 1 < rows && out[i + cols])
+                || (x > 0 && out[i - 1])
+                || (x + 1 < cols && out[i + 1])
         });
-        if near {
+        if near && joined {
             for i in piece {
                 out[i] = true;
             }
@@ -1060,6 +1092,10 @@ mod tests {
             l[i] = i % cols == cols - 1 || i / cols == 0;
         }
         assert!(border_runs(&l, rows, cols, 3).iter().zip(&l).all(|(r, m)| r == m));
+        // a crack one cell in from a side, touching neither the side nor a run, is filled
+        let mut crack = vec![false; rows * cols];
+        crack[cols + 3] = true;
+        assert!(!border_runs(&crack, rows, cols, 3)[cols + 3]);
         let expected: Vec<usize> = (0..rows).filter(|&y| y != 4).flat_map(|y| [y * cols + 6, y * cols + 7]).collect();
         assert_eq!(marked, expected);
         // in the bank's fill they wait, and the crack (with the band's cells on its row) is filled

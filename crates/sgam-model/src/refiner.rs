@@ -352,7 +352,9 @@ impl VqRefiner {
                         band_distance: distance.as_ref().map(|d| {
                             d as &(dyn Fn(usize, [i32; 2], [i32; 2], &[usize], &[Option<Pasted>]) -> f32 + Sync)
                         }),
-                        pixel_offsets: if tiled { (f / 2) as i32 } else { 0 },
+                        // (not with the decoder's colour: it is drawn at the cells, not offset)
+                        pixel_offsets: if tiled && !self.bank_colour_from_decoder { (f / 2) as i32 } else { 0 },
+                        filled: None,
                         source_usable: complete.as_ref().map(|u| u as &(dyn Fn(usize, usize) -> bool + Sync)),
                     };
                     let fill = bank.fill_with(&mut codes, &cells, looks, &hints, &search, &mut self.rng);
@@ -369,7 +371,10 @@ impl VqRefiner {
                         let now = BankSearch { defer_thinner_than: 0, defer_runs: false, ..search };
                         // matched on the pixels as well when quilting tiles (one piece per hole,
                         // as before tiles, by the codes' looks)
-                        let hints = if tiled { hints } else { FillHints::default() };
+                        // (the cells the fill just quilted have their sources' pixels)
+                        let filled = fill.pasted(cells.len());
+                        let hints =
+                            if tiled { FillHints { filled: Some(&filled), ..hints } } else { FillHints::default() };
                         bank.fill_with(&mut scratch, &waiting, looks, &hints, &now, &mut self.rng)
                     });
                     (fill, provisional)
@@ -1134,7 +1139,12 @@ fn paste_sources(
                     if y >= h || x >= w || !missing[y * w + x] {
                         continue;
                     }
-                    let b = offset_index(base, sy * f + dy, sx * f + dx, offset);
+                    // a pixel the offset reaches outside the source cell may lack depth (the
+                    // seed's sky, a sensor's hole): the cell's own pixel then, which has it
+                    let mut b = offset_index(base, sy * f + dy, sx * f + dx, offset);
+                    if !valid(base.depth_m.data[b]) {
+                        b = offset_index(base, sy * f + dy, sx * f + dx, [0, 0]);
+                    }
                     if colour {
                         out.colour.data[y * w + x] = base.colour.data[b];
                     }
@@ -1198,8 +1208,21 @@ mod tests {
         }
         let draw = BankDraw { frame: 0, shift: [0, 0], score: 0.0, cells: 1, hole: 0, offset_px: [0, -2] };
         let fill = BankFill { draws: vec![draw], deferred: vec![], sources: vec![[10, 0, 10]] };
+        let hole = out.clone();
         paste_sources(&mut out, &missing, &fill, &bank, &pixels, f, true);
         assert_eq!(out.colour.data, frame.colour.data);
+        assert!(out.depth_m.data.iter().all(|d| (d - 10.0).abs() < 1e-5));
+        // where the offset reaches a source pixel without depth, the cell's own pixel is taken
+        let mut holed = pixels.clone();
+        for y in 0..w {
+            holed.bases[0].depth_m.data[y * w + 6] = 0.0;
+        }
+        let mut out = hole;
+        paste_sources(&mut out, &missing, &fill, &bank, &holed, f, true);
+        for y in 8..12 {
+            assert_eq!(out.colour.data[y * w + 8], base.colour.data[y * w + 8], "row {y}");
+            assert_eq!(out.colour.data[y * w + 9], base.colour.data[y * w + 7], "row {y}");
+        }
         assert!(out.depth_m.data.iter().all(|d| (d - 10.0).abs() < 1e-5));
     }
 }
