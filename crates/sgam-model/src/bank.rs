@@ -84,17 +84,23 @@ pub struct BankFill {
 }
 
 impl BankFill {
+    /// Every filled cell, `[cell, bank frame, bank frame's cell]`, with the draw it came from
+    /// ([`Self::sources`] hold the draws' cells one draw after another).
+    pub fn filled_cells(&self) -> impl Iterator<Item = ([usize; 3], &BankDraw)> + '_ {
+        let mut rest = &self.sources[..];
+        self.draws.iter().flat_map(move |d| {
+            let (these, after) = rest.split_at(d.cells.min(rest.len()));
+            rest = after;
+            these.iter().map(move |s| (*s, d))
+        })
+    }
+
     /// Per cell of a `cells`-cell grid, what this fill put there (its source and pixel offset).
     pub fn pasted(&self, cells: usize) -> Vec<Option<Pasted>> {
         let mut out = vec![None; cells];
-        let mut rest = &self.sources[..];
-        for d in &self.draws {
-            let (these, after) = rest.split_at(d.cells.min(rest.len()));
-            rest = after;
-            for &[cell, frame, source] in these {
-                if let Some(o) = out.get_mut(cell) {
-                    *o = Some(Pasted { frame, cell: source, offset_px: d.offset_px });
-                }
+        for ([cell, frame, source], d) in self.filled_cells() {
+            if let Some(o) = out.get_mut(cell) {
+                *o = Some(Pasted { frame, cell: source, offset_px: d.offset_px });
             }
         }
         out

@@ -369,9 +369,8 @@ impl VqRefiner {
                         }
                         let mut scratch = codes.clone();
                         let now = BankSearch { defer_thinner_than: 0, defer_runs: false, ..search };
-                        // matched on the pixels as well when quilting tiles (one piece per hole,
-                        // as before tiles, by the codes' looks)
-                        // (the cells the fill just quilted have their sources' pixels)
+                        // with tiles, matched on the pixels as well, the cells the fill just
+                        // quilted having their sources' pixels; without, by the codes' looks
                         let filled = fill.pasted(cells.len());
                         let hints =
                             if tiled { FillHints { filled: Some(&filled), ..hints } } else { FillHints::default() };
@@ -1006,6 +1005,7 @@ fn band_pixel_distance(
     block: usize,
 ) -> f32 {
     let w = frame.width() as usize;
+    let blk = block.clamp(1, f);
     let (mut sum, mut n) = (0.0f32, 0usize);
     for (j, &cell) in band.iter().enumerate() {
         let (y, x) = ((cell / bank.cols) as i32 + shift[0], (cell % bank.cols) as i32 + shift[1]);
@@ -1025,7 +1025,7 @@ fn band_pixel_distance(
             },
             None => None,
         };
-        let blk = block.clamp(1, f);
+        let (cy, cx) = (cell / bank.cols, cell % bank.cols);
         for by in (0..f).step_by(blk) {
             for bx in (0..f).step_by(blk) {
                 let (mut mp, mut mq, mut k) = ([0.0f32; 3], [0.0f32; 3], 0usize);
@@ -1034,13 +1034,10 @@ fn band_pixel_distance(
                         let q = &base.colour.data[offset_index(base, sy * f + dy, sx * f + dx, offset)];
                         let p = match own {
                             Some((b, [oy, ox], o)) => &b.colour.data[offset_index(b, oy * f + dy, ox * f + dx, o)],
-                            None => {
-                                let (cy, cx) = (cell / bank.cols, cell % bank.cols);
-                                match frame.colour.data.get((cy * f + dy) * w + cx * f + dx) {
-                                    Some(p) => p,
-                                    None => continue,
-                                }
-                            }
+                            None => match frame.colour.data.get((cy * f + dy) * w + cx * f + dx) {
+                                Some(p) => p,
+                                None => continue,
+                            },
                         };
                         for c in 0..3 {
                             mp[c] += p[c];
@@ -1084,14 +1081,9 @@ fn paste_sources(
     let (w, h) = (out.width() as usize, out.height() as usize);
     let (rows, cols) = (bank.rows as i64, bank.cols as i64);
     let valid = sgam_core::is_valid_depth;
-    // every filled cell with its draw's pixel offset: `([cell, bank frame, bank cell], offset)`
-    let mut cells: Vec<([usize; 3], [i32; 2], usize)> = Vec::with_capacity(fill.sources.len());
-    let mut rest = &fill.sources[..];
-    for draw in &fill.draws {
-        let (these, after) = rest.split_at(draw.cells.min(rest.len()));
-        rest = after;
-        cells.extend(these.iter().map(|s| (*s, draw.offset_px, draw.hole)));
-    }
+    // every filled cell with its draw's pixel offset and hole: `([cell, bank frame, bank cell], offset, hole)`
+    let cells: Vec<([usize; 3], [i32; 2], usize)> =
+        fill.filled_cells().map(|(s, d)| (s, d.offset_px, d.hole)).collect();
     for hole in cells.chunk_by(|a, b| a.2 == b.2) {
         let in_hole: std::collections::HashSet<usize> = hole.iter().map(|s| s.0[0]).collect();
         // the depth ratios around the hole
