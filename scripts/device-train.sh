@@ -1,13 +1,17 @@
 #!/usr/bin/env bash
-# Ten minutes of context training on a lent GPU machine (the `device` tool), weights brought back.
-# The project never depends on it; run it the moment a session's `status` says a device is lent.
+# Context training on a lent GPU machine (the `device` tool), weights brought back. The project
+# never depends on it; run it the moment a session's `status` says a device is lent.
 #
 # Here, once per session (builds the wgpu trainer, fetches the Vulkan loader, picks the start):
-#   scripts/device-train.sh prepare [START.safetensors]   # default: the run's or the bundled model
-# Then one device call (carry the two folders; 600 s leaves room for the machine's start):
-#   run(command="bash scripts/device-train.sh train 420", carry=[".device", ".gl"], timeout_s=600)
-# The weights come back as $OUT/model.safetensors (files_at); export them with
-#   sgam train export FILES_AT/model.safetensors models/compact.safetensors
+#   scripts/device-train.sh prepare [START.safetensors]   # default: the context candidate
+# Then one device call (carry the two folders; the command ends by itself at BUDGET seconds):
+#   run(command="bash scripts/device-train.sh train 540", carry=[".device", ".gl"], timeout_s=600)
+# Two runs share the GPU and one recording of the pairs (16 cores record 16 generator runs at
+# once): A continues START's context; B is a 4.6x larger context (256 wide, 6 blocks) from the
+# bundled model, the capacity ablation issue 26 asks for. At BUDGET both are stopped (their last
+# checkpoints are whole: writes are atomic) and come back as $OUT/{a,b}.safetensors with their
+# val.jsonl and logs. Export with
+#   sgam train export FILES_AT/a.safetensors models/context-candidate.safetensors
 # and judge them with `sgam eval world` before bundling.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -19,27 +23,62 @@ prepare)
   # burn's wgpu backend builds offline (its cuda backend would download LLVM); no debuginfo, so
   # the binary fits a transfer
   CARGO_PROFILE_RELEASE_DEBUG=false cargo build --release -p sgam --features sgam-model/wgpu --target-dir target-wgpu
-  strip -o .device/sgam target-wgpu/release/sgam
+  # stripped it is about 100 MB, xz brings it to 25 (a call carries 64 MiB with the tree)
+  strip -o target-wgpu/sgam-stripped target-wgpu/release/sgam
+  rm -f .device/sgam
+  xz -T0 -6 -c target-wgpu/sgam-stripped >.device/sgam.xz
   o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
   # shellcheck disable=SC2086
   apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 >/dev/null)
-  cp "${2:-models/compact.safetensors}" .device/start.safetensors
+  cp "${2:-models/context-candidate.safetensors}" .device/start.safetensors
+  cp models/compact.safetensors .device/base.safetensors
   du -sh .device .gl
   ;;
 train)
-  seconds=${2:-420}
+  budget=${2:-540}
+  t0=$(date +%s)
   for f in .gl/*.deb; do dpkg -x "$f" /; done
   ldconfig
   if ! ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1; then
     export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
   fi
+  nvidia-smi -L || true
+  # SGAM_BIN: another build for a dry run of this script (a CPU build here, small PAIRS and budget)
+  bin=${SGAM_BIN:-/tmp/sgam}
+  [ -n "${SGAM_BIN:-}" ] || { xz -T0 -dc .device/sgam.xz >/tmp/sgam && chmod +x /tmp/sgam; }
+  rm -rf /tmp/ctxA /tmp/ctxB
   out=${OUT:-/tmp/out}
   mkdir -p "$out"
-  # 16 cores record the pairs in about 2 minutes; the GPU trains for the rest
-  ./.device/sgam train context --run /tmp/ctx --model .device/start.safetensors --pairs 6000 \
-    --val-pairs 192 --batch 64 --lr 5e-4 --steps 100000 --val-every 200 --ckpt-every 100 \
-    --time-limit "$seconds" 2>&1 | tail -40
-  cp /tmp/ctx/ckpt/model.safetensors /tmp/ctx/val.jsonl "$out"/
+  common=(--pairs "${PAIRS:-8000}" --val-pairs "${VAL_PAIRS:-192}" --seed 7 --batch "${BATCH:-128}" --steps 1000000
+    --val-every 200 --ckpt-every 50 --time-limit 100000)
+  "$bin" train context --run /tmp/ctxA --model .device/start.safetensors --lr 3e-4 "${common[@]}" \
+    >"$out/a.log" 2>&1 &
+  a=$!
+  # B starts on A's pairs once A has written them (the cache key does not name the model)
+  b=
+  alive() { kill -0 "$a" 2>/dev/null || { [ -n "$b" ] && kill -0 "$b" 2>/dev/null; }; }
+  while alive && [ $(($(date +%s) - t0)) -lt $((budget - 20)) ]; do
+    if [ -z "$b" ] && [ -f /tmp/ctxA/pairs-2.bin ]; then
+      echo "pairs recorded after $(($(date +%s) - t0)) s"
+      mkdir -p /tmp/ctxB && cp /tmp/ctxA/pairs-*.bin /tmp/ctxB/
+      "$bin" train context --run /tmp/ctxB --model .device/base.safetensors --dim 256 --layers 6 \
+        --heads 8 --lr 3e-4 "${common[@]}" >"$out/b.log" 2>&1 &
+      b=$!
+    fi
+    sleep 3
+  done
+  # (TERM: a non-interactive shell starts background jobs with SIGINT ignored)
+  kill -TERM "$a" ${b:+"$b"} 2>/dev/null || true
+  wait || true
+  for r in a b; do
+    d=/tmp/ctx${r^^}
+    # f16, config embedded (a 256-wide context in f32 would pass the 16 MiB a file may bring back)
+    [ -f $d/ckpt/model.safetensors ] && "$bin" train export $d/ckpt/model.safetensors "$out/$r.safetensors"
+    [ -f $d/val.jsonl ] && cp $d/val.jsonl "$out/$r-val.jsonl"
+    [ -f $d/log.jsonl ] && tail -n 400 $d/log.jsonl >"$out/$r-log.jsonl"
+    echo "== $r"; grep -v '^\s*$' "$out/$r.log" 2>/dev/null | tail -n 12 || true
+  done
+  echo "done after $(($(date +%s) - t0)) s"
   ;;
 *)
   echo "usage: $0 prepare [START.safetensors] | train [SECONDS]" >&2

@@ -49,7 +49,7 @@ use crate::quantize::{argmin, select_codes, squared_distances, to_host, Sampling
 use crate::ModelError;
 
 /// One training example of the generative stage 2.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct CodePair {
     /// Incomplete guidance (what the generator renders + warps).
     pub input: RgbdFrame,

@@ -26,7 +26,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let n: usize = args.get(3).map(|s| s.parse()).transpose()?.unwrap_or(12);
     let model = args.get(4).map(std::path::PathBuf::from);
     let key = CacheKey {
-        version: 2,
+        version: sgam_pipeline::codepairs::CACHE_VERSION,
         pairs: 256,
         steps_per_run: 40,
         crop: 128,

@@ -126,7 +126,7 @@ pub(crate) fn recorded_pairs(
     // validation pairs stay the oracle's: one fixed yardstick across runs
     let closed_loop = spec.closed_loop.filter(|_| stream == 1);
     let key = sgam_pipeline::codepairs::CacheKey {
-        version: 2, // 2: pairs from all six trajectory shapes
+        version: sgam_pipeline::codepairs::CACHE_VERSION,
         pairs: n,
         steps_per_run: spec.steps_per_run,
         crop: spec.crop,
