@@ -5,7 +5,9 @@
 # Here, once per session (builds the wgpu trainer, fetches the Vulkan loader, picks the start):
 #   scripts/device-train.sh prepare [START.safetensors]   # default: the context candidate
 # Then one device call (carry the two folders; the command ends by itself at BUDGET seconds):
-#   run(command="bash scripts/device-train.sh train 540", carry=[".device", ".gl"], timeout_s=600)
+#   run(command="SEED=9 bash scripts/device-train.sh train 570", carry=[".device", ".gl"], timeout_s=600)
+# (a first call finds the machine cold: about 30 s to start; 570 s leaves the 15 minutes room for
+# one retry of a call that fails early; recording 10,000 pairs took 200 s of it in session 23)
 # Two runs share the GPU and one recording of the pairs (16 cores record 16 generator runs at
 # once): A continues START's context; B is a 4.6x larger context (256 wide, 6 blocks) from the
 # bundled model, the capacity ablation issue 26 asks for. At BUDGET both are stopped (their last
@@ -52,9 +54,12 @@ train)
   rm -rf /tmp/ctxA /tmp/ctxB
   out=${OUT:-/tmp/out}
   mkdir -p "$out"
-  common=(--pairs "${PAIRS:-8000}" --val-pairs "${VAL_PAIRS:-192}" --seed 7 --batch "${BATCH:-128}" --steps 1000000
-    --val-every 200 --ckpt-every 50 --time-limit 100000)
-  "$bin" train context --run /tmp/ctxA --model .device/start.safetensors --lr 3e-4 "${common[@]}" \
+  # session 23 (batch 128): 156 pairs/s for A with B beside it, 1.2 steps/s, the GPU mostly waiting
+  # on dispatches (burn-wgpu, many small kernels): a larger batch should cost little more a step
+  # (not measured yet). A new SEED records new pairs (its validation pairs change with it).
+  common=(--pairs "${PAIRS:-10000}" --val-pairs "${VAL_PAIRS:-192}" --seed "${SEED:-7}" --batch "${BATCH:-512}"
+    --steps 1000000 --val-every 50 --ckpt-every 25 --time-limit 100000)
+  "$bin" train context --run /tmp/ctxA --model .device/start.safetensors --lr "${LR:-5e-4}" "${common[@]}" \
     >"$out/a.log" 2>&1 &
   a=$!
   # B starts on A's pairs once A has written them (the cache key does not name the model)
@@ -65,7 +70,7 @@ train)
       echo "pairs recorded after $(($(date +%s) - t0)) s"
       mkdir -p /tmp/ctxB && cp /tmp/ctxA/pairs-*.bin /tmp/ctxB/
       "$bin" train context --run /tmp/ctxB --model .device/base.safetensors --dim 256 --layers 6 \
-        --heads 8 --lr 3e-4 "${common[@]}" >"$out/b.log" 2>&1 &
+        --heads 8 --lr "${LR:-5e-4}" "${common[@]}" >"$out/b.log" 2>&1 &
       b=$!
     fi
     sleep 3
