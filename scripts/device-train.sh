@@ -30,9 +30,9 @@ prepare)
   rm -f .device/sgam
   xz -T0 -6 -c target-wgpu/sgam-stripped >.device/sgam.xz
   o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
-  # shellcheck disable=SC2086
   # NVIDIA's Vulkan driver (libGLX_nvidia) needs glvnd's libraries beside the loader: with
   # libvulkan1 alone the loader found no vkCreateInstance in it and wgpu no adapter (session 23)
+  # shellcheck disable=SC2086
   apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libglvnd0 libegl1 libgl1 libglx0 \
     libopengl0 libgles2 >/dev/null)
   cp "${2:-models/context-candidate.safetensors}" .device/start.safetensors

@@ -38,6 +38,8 @@ pub const DEFAULT_CELLS_PER_PASS: usize = 8;
 /// Default of `--quilt-tile`, latent cells: chosen between 0 (whole holes, the stripes), 4 and 8
 /// on the three Google Earth seeds and the 7-Scenes frame (60 steps, two run seeds each;
 /// docs/MODEL.md, session 22). 4 let smooth textures (a road, a lawn) spread over the new area.
+/// Chosen on the line, Google Earth's own path: on the zig-zag and the spiral tiles score worse
+/// by KID, and on the spiral a roof grows step by step (docs/STATUS.md, session 23).
 pub const DEFAULT_QUILT_TILE: usize = 8;
 /// Default of `--top-k`: 0, all codes (the trained distribution).
 pub const DEFAULT_TOP_K: usize = 0;
