@@ -39,6 +39,16 @@ impl Norm {
         }
     }
 
+    /// Groups of channels normalised together.
+    pub(crate) fn groups(&self) -> usize {
+        self.groups
+    }
+
+    /// The epsilon added to the variance.
+    pub(crate) fn eps(&self) -> f64 {
+        self.eps
+    }
+
     /// Normalises over each group of channels and all pixels, then applies the affine map.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         let [b, c, h, w] = x.dims();

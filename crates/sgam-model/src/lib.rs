@@ -37,6 +37,7 @@ pub mod generative;
 pub mod loss;
 pub mod lpips;
 pub mod model;
+pub mod nhwc;
 pub mod packing;
 pub mod params;
 pub mod quantize;

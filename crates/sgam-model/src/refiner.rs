@@ -16,7 +16,8 @@ use crate::bank::{BankDraw, BankFill, BankPixels, BankSearch, CodeBank, FillHint
 use crate::config::ModelConfig;
 use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
-use crate::packing::{missing_cells, pack_input, unpack};
+use crate::nhwc::NhwcNet;
+use crate::packing::{missing_cells, pack_input, unpack, unpack_values};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, WeightPrecision};
 use crate::quantize::{select_codes, select_codes_by_class, squared_distances, to_host, Sampling};
 use crate::ModelError;
@@ -171,6 +172,11 @@ pub struct VqRefiner {
     /// With the bank's pixels: holes take only their depth, and their colour is the decoder's
     /// drawing of the quilted codes (a decoder adapted to the seed).
     bank_colour_from_decoder: bool,
+    /// The encoder and decoder in the CPU kernels ([`crate::nhwc`]): present on the CPU backend
+    /// for a model they cover (no attention).
+    nhwc: Option<NhwcNet>,
+    /// Whether passes use [`Self::nhwc`] (on by default; off runs burn's path, for comparison).
+    use_nhwc: bool,
 }
 
 /// What the last [`VqRefiner::complete_at`] call chose (for tests and diagnostics).
@@ -192,8 +198,11 @@ impl VqRefiner {
     /// Wraps a model.
     pub fn new(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device) -> Self {
         let rng = ChaCha8Rng::seed_from_u64(options.seed);
+        let model = model.valid();
+        // the CPU kernels on the CPU backend; a model they do not cover keeps burn's path
+        let nhwc = if cfg!(feature = "wgpu") { None } else { NhwcNet::new(&model, &config).ok().flatten() };
         Self {
-            model: model.valid(),
+            model,
             config,
             options,
             rng,
@@ -204,6 +213,54 @@ impl VqRefiner {
             looks: None,
             bank_pixels: None,
             bank_colour_from_decoder: false,
+            nhwc,
+            use_nhwc: true,
+        }
+    }
+
+    /// Runs the encoder and decoder in the CPU kernels ([`crate::nhwc`], the default where they
+    /// cover the model) or in burn (`false`; for comparisons: both compute the same pass).
+    pub fn set_cpu_kernels(&mut self, on: bool) {
+        self.use_nhwc = on;
+    }
+
+    /// Whether passes run in the CPU kernels.
+    pub fn uses_cpu_kernels(&self) -> bool {
+        self.use_nhwc && self.nhwc.is_some()
+    }
+
+    fn cpu_net(&self) -> Option<&NhwcNet> {
+        self.nhwc.as_ref().filter(|_| self.use_nhwc)
+    }
+
+    /// Per latent cell of the packed input `x` (`[1, C, H, W]`), per code: the code head's
+    /// negated logits, or without a head the squared distance of the encoder's latent to the
+    /// code (`[cells * n_embed]`, cells row-major). Lower is likelier.
+    fn code_distances(&self, x: Tensor<4>) -> Result<Vec<f32>, ModelError> {
+        let codebook = || self.model.quantize.embedding.weight.val();
+        if let Some(net) = self.cpu_net() {
+            let [_, c, h, w] = x.dims();
+            let feats = net.features(&to_host(x)?, c, h, w)?;
+            return match net.logits(&feats) {
+                Some(l) => Ok(l.data.into_iter().map(|v| -v).collect()),
+                None => {
+                    let z = net.latent(&feats);
+                    let rows = Tensor::<2>::from_data(TensorData::new(z.data, [z.h * z.w, z.c]), &self.device);
+                    to_host(squared_distances(rows, codebook()))
+                }
+            };
+        }
+        match self.model.code_logits(x.clone()) {
+            Some(logits) => {
+                let [_, kk, zh, zw] = logits.dims();
+                to_host(logits.permute([0, 2, 3, 1]).reshape([zh * zw, kk]).neg())
+            }
+            None => {
+                let z = self.model.encode(x);
+                let [_, d, zh, zw] = z.dims();
+                let rows = z.permute([0, 2, 3, 1]).reshape([zh * zw, d]);
+                to_host(squared_distances(rows, codebook()))
+            }
         }
     }
 
@@ -428,26 +485,13 @@ impl VqRefiner {
         } else {
             1
         };
-        let codebook = self.model.quantize.embedding.weight.val();
         let k = self.config.n_embed;
         let mut committed: Vec<Option<u32>> = vec![None; cells.len()];
         let mut codes = Vec::new();
         let mut passes_log: Vec<Vec<usize>> = Vec::new();
         for pass in 0..passes {
             let x = pack_input(&[&work], &[Some(mask.as_slice())], &[intrinsics], &self.config, &self.device)?;
-            // "distances": -logits of the code head, else squared distances to the codes
-            let dist = match self.model.code_logits(x.clone()) {
-                Some(logits) => {
-                    let [_, kk, zh, zw] = logits.dims();
-                    to_host(logits.permute([0, 2, 3, 1]).reshape([zh * zw, kk]).neg())?
-                }
-                None => {
-                    let z = self.model.encode(x);
-                    let [_, d, zh, zw] = z.dims();
-                    let rows = z.permute([0, 2, 3, 1]).reshape([zh * zw, d]);
-                    to_host(squared_distances(rows, codebook.clone()))?
-                }
-            };
+            let dist = self.code_distances(x)?;
             let open: Vec<bool> = cells.iter().zip(&committed).map(|(m, c)| *m && c.is_none()).collect();
             let (drawn, drawn_p) = match (within, sampling) {
                 (Some(within), Sampling::Temperature { temperature, .. }) => {
@@ -578,11 +622,23 @@ impl VqRefiner {
         let sampling = self.effective_sampling();
         let k = self.config.n_embed;
         let x = pack_input(&[work], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
-        let feats = self.model.features(x);
-        let logits = head.forward(feats.clone());
         let z = self.config.z_channels;
-        let feats = feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]);
-        let head_rows = to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]))?;
+        let (feats, head_rows) = match self.cpu_net() {
+            Some(net) => {
+                let [_, c, h, w] = x.dims();
+                let feats = net.features(&to_host(x)?, c, h, w)?;
+                let Some(logits) = net.logits(&feats) else {
+                    return Err(ModelError::MissingPart { part: "a code head", operation: "context sampling" });
+                };
+                (Tensor::<2>::from_data(TensorData::new(feats.data, [ch * cw, z]), &self.device), logits.data)
+            }
+            None => {
+                let feats = self.model.features(x);
+                let logits = head.forward(feats.clone());
+                let head_rows = to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]))?;
+                (feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]), head_rows)
+            }
+        };
         // observed cells: the head's most likely code
         let neg: Vec<f32> = head_rows.iter().map(|v| -v).collect();
         let mut codes = select_codes(&neg, ch * cw, k, None, Sampling::Argmin, &mut self.rng);
@@ -747,15 +803,7 @@ impl VqRefiner {
     ) -> Result<Vec<u32>, ModelError> {
         let x = pack_input(&[frame], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
         let k = self.config.n_embed;
-        let dist = match self.model.code_logits(x.clone()) {
-            Some(logits) => to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]).neg())?,
-            None => {
-                let z = self.model.encode(x);
-                let d = self.config.embed_dim;
-                let rows = z.permute([0, 2, 3, 1]).reshape([ch * cw, d]);
-                to_host(squared_distances(rows, self.model.quantize.embedding.weight.val()))?
-            }
-        };
+        let dist = self.code_distances(x)?;
         Ok(select_codes(&dist, ch * cw, k, None, Sampling::Argmin, &mut self.rng))
     }
 
@@ -822,6 +870,13 @@ impl VqRefiner {
 
     /// Decodes one code per latent cell (row-major `[h, w]`) into a frame.
     fn decode_codes(&self, codes: &[u32], h: usize, w: usize) -> Result<RgbdFrame, ModelError> {
+        if let Some(net) = self.cpu_net() {
+            let f = self.config.downsample_factor();
+            let planes = net.decode_codes(codes, h, w)?;
+            return unpack_values(&planes, [1, 4, h * f, w * f], &self.config.depth)?
+                .pop()
+                .ok_or(ModelError::EmptyBatch("decoding codes"));
+        }
         let rows = self.model.quantize.lookup(codes, &self.device);
         let [_, d] = rows.dims();
         let z_q = rows.reshape([1, h, w, d]).permute([0, 3, 1, 2]);

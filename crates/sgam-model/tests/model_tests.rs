@@ -592,3 +592,52 @@ fn learning_rate_is_constant_then_decays_along_a_cosine_to_the_floor() {
     let lrs: Vec<f64> = (600..=1000).map(|s| tc.lr_at(s)).collect();
     assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "decay is monotone");
 }
+
+/// The refiner's CPU kernels (`sgam_model::nhwc`) and burn's pass of the same model draw the
+/// same codes and the same pixels, through one pass (argmin) and through sampling in passes, with
+/// and without a code head.
+#[test]
+fn the_cpu_kernels_complete_frames_as_burns_pass_does() {
+    let device = default_device();
+    let tiny = ModelConfig { mid_attn: false, ..ModelConfig::tiny() };
+    let sampled = RefinerOptions {
+        sampling: Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        cells_per_pass: 4,
+        ..RefinerOptions::default()
+    };
+    let cases = [
+        (tiny.clone(), RefinerOptions { sampling: Sampling::Argmin, ..RefinerOptions::default() }),
+        (ModelConfig { code_tau: Some(0.5), ..tiny.clone() }, sampled),
+        (ModelConfig { code_head: true, code_tau: Some(1.0), ..tiny }, sampled),
+    ];
+    let (w, h) = (40u32, 36u32); // not multiples of the downsampling factor: padded and cropped
+    let f = synthetic_frame(w, h, 6);
+    let missing: Vec<bool> = (0..w * h).map(|p| p % w >= 22 || p / w >= 30).collect();
+    for (i, (cfg, options)) in cases.into_iter().enumerate() {
+        let model = VqModel::new(&cfg, 10 + i as u64, &device).unwrap();
+        let mut ours = VqRefiner::new(model.clone(), cfg.clone(), options, device.clone());
+        let mut burn = VqRefiner::new(model, cfg, options, device.clone());
+        burn.set_cpu_kernels(false);
+        assert!(ours.uses_cpu_kernels() && !burn.uses_cpu_kernels(), "case {i}");
+        let a = ours.complete(&f, &missing).unwrap();
+        let b = burn.complete(&f, &missing).unwrap();
+        assert_eq!(ours.trace().codes, burn.trace().codes, "case {i}: codes");
+        assert_eq!(ours.trace().passes, burn.trace().passes, "case {i}: passes");
+        assert!(ours.trace().passes.len() > usize::from(i > 0), "case {i}: {:?}", ours.trace().passes);
+        let colour =
+            a.colour.data.iter().zip(&b.colour.data).flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()));
+        let dc = colour.fold(0.0f32, f32::max);
+        let dd = a
+            .depth_m
+            .data
+            .iter()
+            .zip(&b.depth_m.data)
+            .map(|(p, q)| (p - q).abs() / q.abs().max(1e-3))
+            .fold(0.0f32, f32::max);
+        assert!(dc < 1e-3 && dd < 1e-3, "case {i}: colour differs by {dc}, depth by {dd} (relative)");
+    }
+    // a model with attention keeps burn's path
+    let cfg = ModelConfig::tiny();
+    let r = VqRefiner::new(VqModel::new(&cfg, 1, &device).unwrap(), cfg, RefinerOptions::default(), device);
+    assert!(!r.uses_cpu_kernels());
+}

@@ -26,7 +26,9 @@ pub enum Subject {
     MapStep,
     /// Ray tracing one synthetic frame (4 spp, soft shadows).
     Synth,
-    /// One forward pass of the compact VQ model (bundled weights, or untrained ones: same cost).
+    /// One completion by the compact VQ model (bundled weights, or untrained ones: same cost),
+    /// a quarter of the frame missing; on the CPU its kernels (sgam_model::nhwc) against burn's
+    /// pass of the same model, interleaved.
     Refine,
     /// One full generation step (sources + render + warp + refine + integrate + re-mesh +
     /// write) with the compact model; prints the per-stage split.
@@ -120,12 +122,21 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
     let n = frame.depth_m.len();
     let missing: Vec<bool> = (0..n).map(|i| (i % args.res as usize) > args.res as usize * 3 / 4).collect();
     let g = sgam_core::Guidance { camera: *cam, frame: frame.clone(), missing, seed: 0 };
+    // the CPU kernels (sgam_model::nhwc) against burn's own pass of the same model, interleaved
+    let compare = refiner.uses_cpu_kernels();
     sgam_core::Refiner::refine(&mut refiner, &g)?; // warm-up
-    let mut ms = Vec::new();
+    let (mut ms, mut burn_ms) = (Vec::new(), Vec::new());
     for _ in 0..args.iterations {
         let t = Instant::now();
         std::hint::black_box(sgam_core::Refiner::refine(&mut refiner, &g)?);
         ms.push(t.elapsed().as_secs_f64() * 1e3);
+        if compare {
+            refiner.set_cpu_kernels(false);
+            let t = Instant::now();
+            std::hint::black_box(sgam_core::Refiner::refine(&mut refiner, &g)?);
+            burn_ms.push(t.elapsed().as_secs_f64() * 1e3);
+            refiner.set_cpu_kernels(true);
+        }
     }
     let cfg = refiner.config().clone();
     let trace = refiner.trace().clone();
@@ -148,6 +159,7 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
     };
     let gflop = 2.0 * (enc + dec + context_macs) as f64 / 1e9;
     let median = sgam_metrics::median(&ms).unwrap_or(f64::NAN);
+    let burn_median = sgam_metrics::median(&burn_ms);
     let gemm = gemm_gflops(1024, 5);
     print_line(
         args,
@@ -161,7 +173,11 @@ fn bench_refine(args: &BenchArgs) -> Result<()> {
                "gflop_context": 2.0 * context_macs as f64 / 1e9,
                "achieved_gflops": gflop / (median / 1e3),
                "gemm_1024_gflops": gemm,
-               "share_of_gemm": gflop / (median / 1e3) / gemm}),
+               "share_of_gemm": gflop / (median / 1e3) / gemm,
+               "cpu_kernels": compare,
+               "burn_median_ms": burn_median,
+               "burn_share_of_gemm": burn_median.map(|b| gflop / (b / 1e3) / gemm),
+               "time_vs_burn": burn_median.map(|b| median / b)}),
     );
     Ok(())
 }

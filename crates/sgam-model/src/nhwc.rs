@@ -1,0 +1,728 @@
+//! The CPU inference path of the convolutional encoder and decoder (issue 26: speed that buys
+//! model size).
+//!
+//! burn's CPU backend runs each convolution as an NCHW -> NHWC copy, an element-wise im2col with
+//! a bounds check per tap, a GEMM and a scatter back to NCHW, with GroupNorm and SiLU as separate
+//! passes over memory: perf put a third of the refine's time in that layout work (docs/MODEL.md,
+//! session 23). Here the activations stay NHWC for the whole pass and each convolution
+//! - copies its input once into a zero-padded buffer, applying on the way what precedes it in
+//!   the model: GroupNorm + SiLU as one per-channel affine map and a vectorised SiLU, or the
+//!   nearest x2 upsampling;
+//! - accumulates all `k x k` taps of a tile of output pixels in registers: 16-lane vectors over
+//!   output channels (`wide::f32x16`, AVX-512 where the build targets it, two AVX2 halves
+//!   elsewhere), each input value broadcast once per tap and channel;
+//! - adds bias and the residual skip in its store.
+//!
+//! Hand-written because no crate does this: burn (and candle) convolve through im2col + GEMM in
+//! NCHW, and the inference engines that keep NHWC (tract, ort) would need the model exported to
+//! ONNX and a second runtime. Inference only: training keeps burn's autodiff. Models with
+//! attention (the `paper` preset) are not covered and keep burn's path. Checked against burn's
+//! forward pass in the tests below.
+
+use burn::nn::conv::Conv2d;
+use rayon::prelude::*;
+use wide::f32x16;
+
+use crate::blocks::{Norm, ResnetBlock};
+use crate::config::ModelConfig;
+use crate::model::{Mid, VqModel};
+use crate::quantize::to_host;
+use crate::ModelError;
+
+/// Lanes of one vector of output channels.
+const LANES: usize = 16;
+
+/// One image's activations, NHWC: `h x w x c` values, row-major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Act {
+    /// Rows.
+    pub h: usize,
+    /// Columns.
+    pub w: usize,
+    /// Channels.
+    pub c: usize,
+    /// `h * w * c` values, channels fastest.
+    pub data: Vec<f32>,
+}
+
+impl Act {
+    /// From one image's planes (`c x h x w`, NCHW without the batch).
+    pub fn from_nchw(values: &[f32], c: usize, h: usize, w: usize) -> Self {
+        let hw = h * w;
+        let mut data = vec![0.0; hw * c];
+        for (ch, plane) in values.chunks_exact(hw).take(c).enumerate() {
+            for (p, v) in plane.iter().enumerate() {
+                data[p * c + ch] = *v;
+            }
+        }
+        Self { h, w, c, data }
+    }
+
+    /// To planes (`c x h x w`).
+    pub fn to_nchw(&self) -> Vec<f32> {
+        let hw = self.h * self.w;
+        let mut out = vec![0.0; hw * self.c];
+        for (p, px) in self.data.chunks_exact(self.c.max(1)).enumerate() {
+            for (ch, v) in px.iter().enumerate() {
+                out[ch * hw + p] = *v;
+            }
+        }
+        out
+    }
+}
+
+/// What a convolution applies to its input while copying it into the padded buffer.
+#[derive(Debug, Clone, Copy)]
+enum Pre<'a> {
+    /// Nothing.
+    Copy,
+    /// `silu(x * scale[c] + shift[c])`: a GroupNorm folded into per-channel affine maps.
+    NormSilu(&'a [f32], &'a [f32]),
+    /// Nearest-neighbour x2 upsampling.
+    Up2,
+}
+
+/// A convolution's weights, laid out for the kernel: per tap, per input channel, the output
+/// channels in vectors of 16 (zero-padded).
+#[derive(Debug)]
+struct ConvW {
+    k: usize,
+    stride: usize,
+    /// Zero padding: top, left, bottom, right.
+    pad: [usize; 4],
+    cin: usize,
+    cout: usize,
+    /// Vectors of output channels (`cout / 16` rounded up).
+    nv: usize,
+    /// `[k * k][cin][nv]`.
+    w: Vec<f32x16>,
+    /// `[nv]`.
+    bias: Vec<f32x16>,
+}
+
+impl ConvW {
+    fn new(conv: &Conv2d, stride: usize, pad: [usize; 4]) -> Result<Self, ModelError> {
+        let weight = conv.weight.val();
+        let [cout, cin, kh, kw] = weight.dims();
+        if kh != kw {
+            return Err(ModelError::shape(
+                "a convolution for the CPU kernels",
+                "a square kernel",
+                format!("{kh}x{kw}"),
+            ));
+        }
+        let k = kh;
+        let host = to_host(weight)?;
+        let nv = cout.div_ceil(LANES);
+        let mut lanes = vec![[0.0f32; LANES]; k * k * cin * nv];
+        for co in 0..cout {
+            for ci in 0..cin {
+                for tap in 0..k * k {
+                    lanes[(tap * cin + ci) * nv + co / LANES][co % LANES] = host[(co * cin + ci) * k * k + tap];
+                }
+            }
+        }
+        let mut bias = vec![[0.0f32; LANES]; nv];
+        if let Some(b) = &conv.bias {
+            for (co, v) in to_host(b.val())?.into_iter().enumerate().take(cout) {
+                bias[co / LANES][co % LANES] = v;
+            }
+        }
+        Ok(Self {
+            k,
+            stride,
+            pad,
+            cin,
+            cout,
+            nv,
+            w: lanes.into_iter().map(f32x16::new).collect(),
+            bias: bias.into_iter().map(f32x16::new).collect(),
+        })
+    }
+
+    /// A `k x k` convolution with "same" padding (`k / 2` on every side), stride 1.
+    fn same(conv: &Conv2d) -> Result<Self, ModelError> {
+        let k = conv.weight.dims()[2];
+        let p = k / 2;
+        Self::new(conv, 1, [p; 4])
+    }
+
+    /// Convolves `x` after `pre`, adding `skip` (the output's shape) when given.
+    fn run(&self, x: &Act, pre: Pre<'_>, skip: Option<&Act>) -> Act {
+        let (k, s, cin, cout) = (self.k, self.stride, self.cin, self.cout);
+        debug_assert_eq!(x.c, cin, "input channels");
+        let (ih, iw) = match pre {
+            Pre::Up2 => (2 * x.h, 2 * x.w),
+            _ => (x.h, x.w),
+        };
+        let [pt, pl, pb, pr] = self.pad;
+        let (ph, pw) = (ih + pt + pb, iw + pl + pr);
+        if ph < k || pw < k {
+            return Act { h: 0, w: 0, c: cout, data: Vec::new() };
+        }
+        let (oh, ow) = ((ph - k) / s + 1, (pw - k) / s + 1);
+        let rs = pw * cin;
+        let mut p = vec![0.0f32; ph * rs];
+        // per-channel maps tiled over a row, so a row is one flat loop
+        let (row_scale, row_shift) = match pre {
+            Pre::NormSilu(scale, shift) => {
+                ((0..iw * cin).map(|i| scale[i % cin]).collect(), (0..iw * cin).map(|i| shift[i % cin]).collect())
+            }
+            _ => (Vec::new(), Vec::new()),
+        };
+        let src_rs = x.w * cin;
+        p.par_chunks_mut(rs).enumerate().skip(pt).take(ih).for_each(|(py, prow)| {
+            let y = py - pt;
+            let dst = &mut prow[pl * cin..(pl + iw) * cin];
+            match pre {
+                Pre::Copy => dst.copy_from_slice(&x.data[y * src_rs..(y + 1) * src_rs]),
+                Pre::NormSilu(..) => norm_silu(&x.data[y * src_rs..(y + 1) * src_rs], &row_scale, &row_shift, dst),
+                Pre::Up2 => {
+                    let src = &x.data[(y / 2) * src_rs..(y / 2 + 1) * src_rs];
+                    for (xx, px) in dst.chunks_exact_mut(cin).enumerate() {
+                        px.copy_from_slice(&src[(xx / 2) * cin..(xx / 2 + 1) * cin]);
+                    }
+                }
+            }
+        });
+        let mut out = vec![0.0f32; oh * ow * cout];
+        let ors = ow * cout;
+        out.par_chunks_mut(ors).enumerate().for_each(|(oy, orow)| {
+            let skip_row = skip.map(|a| &a.data[oy * ors..(oy + 1) * ors]);
+            let mut v0 = 0;
+            while v0 < self.nv {
+                let left = self.nv - v0;
+                if left >= 4 {
+                    self.columns::<4, 4>(&p, rs, oy, ow, v0, orow, skip_row);
+                    v0 += 4;
+                } else if left >= 2 {
+                    self.columns::<8, 2>(&p, rs, oy, ow, v0, orow, skip_row);
+                    v0 += 2;
+                } else {
+                    self.columns::<8, 1>(&p, rs, oy, ow, v0, orow, skip_row);
+                    v0 += 1;
+                }
+            }
+        });
+        Act { h: oh, w: ow, c: cout, data: out }
+    }
+
+    /// Output channel vectors `v0..v0 + V` of every pixel of output row `oy`, `R` pixels a tile.
+    #[inline(always)]
+    fn columns<const R: usize, const V: usize>(
+        &self,
+        p: &[f32],
+        rs: usize,
+        oy: usize,
+        ow: usize,
+        v0: usize,
+        orow: &mut [f32],
+        skip: Option<&[f32]>,
+    ) {
+        let mut ox = 0;
+        while ox + R <= ow {
+            let acc = self.tile::<R, V>(p, rs, oy, ox, v0);
+            self.store(&acc, ox, v0, orow, skip);
+            ox += R;
+        }
+        while ox < ow {
+            let acc = self.tile::<1, V>(p, rs, oy, ox, v0);
+            self.store(&acc, ox, v0, orow, skip);
+            ox += 1;
+        }
+    }
+
+    /// The register tile: `R` output pixels from `ox0` x `V` vectors of output channels.
+    #[inline(always)]
+    fn tile<const R: usize, const V: usize>(
+        &self,
+        p: &[f32],
+        rs: usize,
+        oy: usize,
+        ox0: usize,
+        v0: usize,
+    ) -> [[f32x16; V]; R] {
+        let (k, s, cin, nv) = (self.k, self.stride, self.cin, self.nv);
+        let bias = &self.bias[v0..v0 + V];
+        let mut acc = [[f32x16::ZERO; V]; R];
+        for row in acc.iter_mut() {
+            row.copy_from_slice(bias);
+        }
+        for ky in 0..k {
+            let base = (oy * s + ky) * rs;
+            for kx in 0..k {
+                let tap = ky * k + kx;
+                let taps = &self.w[tap * cin * nv..(tap + 1) * cin * nv];
+                let ins: [&[f32]; R] = std::array::from_fn(|r| {
+                    let o = base + ((ox0 + r) * s + kx) * cin;
+                    &p[o..o + cin]
+                });
+                for (ci, wrow) in taps.chunks_exact(nv).enumerate() {
+                    let wv = &wrow[v0..v0 + V];
+                    for r in 0..R {
+                        let a = f32x16::splat(ins[r][ci]);
+                        for v in 0..V {
+                            acc[r][v] = a.mul_add(wv[v], acc[r][v]);
+                        }
+                    }
+                }
+            }
+        }
+        acc
+    }
+
+    #[inline(always)]
+    fn store<const R: usize, const V: usize>(
+        &self,
+        acc: &[[f32x16; V]; R],
+        ox0: usize,
+        v0: usize,
+        orow: &mut [f32],
+        skip: Option<&[f32]>,
+    ) {
+        let cout = self.cout;
+        for (r, vecs) in acc.iter().enumerate() {
+            let base = (ox0 + r) * cout;
+            for (v, vec) in vecs.iter().enumerate() {
+                let c0 = (v0 + v) * LANES;
+                let n = LANES.min(cout - c0);
+                let lanes = vec.to_array();
+                let dst = &mut orow[base + c0..base + c0 + n];
+                match skip {
+                    Some(sk) => {
+                        for ((d, l), s) in dst.iter_mut().zip(&lanes).zip(&sk[base + c0..base + c0 + n]) {
+                            *d = l + s;
+                        }
+                    }
+                    None => dst.copy_from_slice(&lanes[..n]),
+                }
+            }
+        }
+    }
+}
+
+/// `dst = silu(src * scale + shift)`, element-wise.
+fn norm_silu(src: &[f32], scale: &[f32], shift: &[f32], dst: &mut [f32]) {
+    let full = src.len() / LANES * LANES;
+    let load = |s: &[f32]| {
+        let mut a = [0.0f32; LANES];
+        a.copy_from_slice(s);
+        f32x16::new(a)
+    };
+    for i in (0..full).step_by(LANES) {
+        let v = load(&src[i..i + LANES]).mul_add(load(&scale[i..i + LANES]), load(&shift[i..i + LANES]));
+        let y = v / (f32x16::ONE + (-v).exp());
+        dst[i..i + LANES].copy_from_slice(&y.to_array());
+    }
+    for i in full..src.len() {
+        let v = src[i] * scale[i] + shift[i];
+        dst[i] = v / (1.0 + (-v).exp());
+    }
+}
+
+/// A GroupNorm's parameters.
+#[derive(Debug)]
+struct NormW {
+    groups: usize,
+    eps: f64,
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+}
+
+impl NormW {
+    fn new(norm: &Norm) -> Result<Self, ModelError> {
+        Ok(Self {
+            groups: norm.groups(),
+            eps: norm.eps(),
+            weight: to_host(norm.weight.val())?,
+            bias: to_host(norm.bias.val())?,
+        })
+    }
+
+    /// The normalisation of `x` as per-channel `(scale, shift)`: statistics per group over all
+    /// pixels (biased variance, as burn's and PyTorch's GroupNorm), in f64.
+    fn affine(&self, x: &Act) -> (Vec<f32>, Vec<f32>) {
+        let c = x.c;
+        let g = self.groups.clamp(1, c.max(1));
+        let cg = (c / g).max(1);
+        let count = (x.h * x.w * cg) as f64;
+        let row = (x.w * c).max(1);
+        let channel_sums = |centre: Option<&[f64]>| -> Vec<f64> {
+            x.data
+                .par_chunks(row)
+                .map(|r| {
+                    let mut s = vec![0.0f64; c];
+                    for px in r.chunks_exact(c) {
+                        for (ch, (acc, v)) in s.iter_mut().zip(px).enumerate() {
+                            let d = match centre {
+                                Some(m) => *v as f64 - m[ch / cg],
+                                None => *v as f64,
+                            };
+                            *acc += if centre.is_some() { d * d } else { d };
+                        }
+                    }
+                    s
+                })
+                .reduce(
+                    || vec![0.0f64; c],
+                    |mut a, b| {
+                        a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+                        a
+                    },
+                )
+        };
+        let per_group = |sums: Vec<f64>| -> Vec<f64> {
+            (0..g).map(|gi| sums[gi * cg..((gi + 1) * cg).min(c)].iter().sum::<f64>() / count.max(1.0)).collect()
+        };
+        let mean = per_group(channel_sums(None));
+        let var = per_group(channel_sums(Some(&mean)));
+        let (mut scale, mut shift) = (vec![0.0f32; c], vec![0.0f32; c]);
+        for ch in 0..c {
+            let gi = (ch / cg).min(g - 1);
+            let inv = 1.0 / (var[gi] + self.eps).sqrt();
+            let sc = self.weight[ch] as f64 * inv;
+            scale[ch] = sc as f32;
+            shift[ch] = (self.bias[ch] as f64 - mean[gi] * sc) as f32;
+        }
+        (scale, shift)
+    }
+}
+
+#[derive(Debug)]
+struct ResW {
+    norm1: NormW,
+    conv1: ConvW,
+    norm2: NormW,
+    conv2: ConvW,
+    shortcut: Option<ConvW>,
+}
+
+impl ResW {
+    fn new(b: &ResnetBlock) -> Result<Self, ModelError> {
+        Ok(Self {
+            norm1: NormW::new(&b.norm1)?,
+            conv1: ConvW::same(&b.conv1)?,
+            norm2: NormW::new(&b.norm2)?,
+            conv2: ConvW::same(&b.conv2)?,
+            shortcut: b.nin_shortcut.as_ref().map(ConvW::same).transpose()?,
+        })
+    }
+
+    fn run(&self, x: &Act) -> Act {
+        let (s1, t1) = self.norm1.affine(x);
+        let h = self.conv1.run(x, Pre::NormSilu(&s1, &t1), None);
+        let (s2, t2) = self.norm2.affine(&h);
+        match &self.shortcut {
+            Some(proj) => {
+                let skip = proj.run(x, Pre::Copy, None);
+                self.conv2.run(&h, Pre::NormSilu(&s2, &t2), Some(&skip))
+            }
+            None => self.conv2.run(&h, Pre::NormSilu(&s2, &t2), Some(x)),
+        }
+    }
+}
+
+/// One level: residual blocks, then the resampling convolution (stride 2 down, or x2 up).
+#[derive(Debug)]
+struct Level {
+    blocks: Vec<ResW>,
+    resample: Option<ConvW>,
+}
+
+fn mid(m: &Mid) -> Result<[ResW; 2], ModelError> {
+    Ok([ResW::new(&m.block_1)?, ResW::new(&m.block_2)?])
+}
+
+/// The encoder and decoder of a [`VqModel`] without attention, for the CPU kernels.
+#[derive(Debug)]
+pub struct NhwcNet {
+    mask_in: ConvW,
+    stem: ConvW,
+    down: Vec<Level>,
+    enc_mid: [ResW; 2],
+    enc_norm_out: NormW,
+    enc_conv_out: ConvW,
+    quant_conv: ConvW,
+    head: Option<ConvW>,
+    /// `[n_embed][embed_dim]`.
+    codebook: Vec<f32>,
+    embed_dim: usize,
+    post_quant: ConvW,
+    dec_conv_in: ConvW,
+    dec_mid: [ResW; 2],
+    /// In the order they run (lowest resolution first).
+    up: Vec<Level>,
+    dec_norm_out: NormW,
+    dec_conv_out: ConvW,
+    patch: usize,
+}
+
+impl NhwcNet {
+    /// The model's weights in the kernels' layout; `None` for a model with attention (not
+    /// covered: it keeps burn's path).
+    pub fn new(model: &VqModel, config: &ModelConfig) -> Result<Option<Self>, ModelError> {
+        let enc = &model.encoder;
+        let dec = &model.decoder;
+        let attention = enc.down.iter().any(|l| !l.attn.is_empty())
+            || dec.up.iter().any(|l| !l.attn.is_empty())
+            || enc.mid.attn_1.is_some()
+            || dec.mid.attn_1.is_some();
+        if attention {
+            return Ok(None);
+        }
+        let p = config.patch_size;
+        let stem = if p > 1 { ConvW::new(&enc.conv_in, p, [0; 4])? } else { ConvW::same(&enc.conv_in)? };
+        let down = enc
+            .down
+            .iter()
+            .map(|l| {
+                Ok(Level {
+                    blocks: l.block.iter().map(ResW::new).collect::<Result<_, ModelError>>()?,
+                    // taming's downsampling: pad right and bottom by one, 3x3 stride 2
+                    resample: l.downsample.as_ref().map(|d| ConvW::new(&d.conv, 2, [0, 0, 1, 1])).transpose()?,
+                })
+            })
+            .collect::<Result<Vec<_>, ModelError>>()?;
+        let up = dec
+            .up
+            .iter()
+            .rev()
+            .map(|l| {
+                Ok(Level {
+                    blocks: l.block.iter().map(ResW::new).collect::<Result<_, ModelError>>()?,
+                    resample: l.upsample.as_ref().map(|u| ConvW::same(&u.conv)).transpose()?,
+                })
+            })
+            .collect::<Result<Vec<_>, ModelError>>()?;
+        Ok(Some(Self {
+            mask_in: ConvW::same(&model.conv_in)?,
+            stem,
+            down,
+            enc_mid: mid(&enc.mid)?,
+            enc_norm_out: NormW::new(&enc.norm_out)?,
+            enc_conv_out: ConvW::same(&enc.conv_out)?,
+            quant_conv: ConvW::same(&model.quant_conv)?,
+            head: model.code_head.as_ref().map(ConvW::same).transpose()?,
+            codebook: to_host(model.quantize.embedding.weight.val())?,
+            embed_dim: config.embed_dim,
+            post_quant: ConvW::same(&model.post_quant_conv)?,
+            dec_conv_in: ConvW::same(&dec.conv_in)?,
+            dec_mid: mid(&dec.mid)?,
+            up,
+            dec_norm_out: NormW::new(&dec.norm_out)?,
+            dec_conv_out: ConvW::same(&dec.conv_out)?,
+            patch: p,
+        }))
+    }
+
+    /// Mask fusion + encoder ([`VqModel::features`]) of one packed image `x` (NCHW planes).
+    pub fn features(&self, x: &[f32], c: usize, h: usize, w: usize) -> Result<Act, ModelError> {
+        if c != self.mask_in.cin || x.len() != c * h * w {
+            return Err(ModelError::shape(
+                "an input to the CPU kernels",
+                format!("{} planes of {h}x{w}", self.mask_in.cin),
+                format!("{c} planes, {} values", x.len()),
+            ));
+        }
+        let x = Act::from_nchw(x, c, h, w);
+        let mut a = self.stem.run(&self.mask_in.run(&x, Pre::Copy, None), Pre::Copy, None);
+        for level in &self.down {
+            for b in &level.blocks {
+                a = b.run(&a);
+            }
+            if let Some(ds) = &level.resample {
+                a = ds.run(&a, Pre::Copy, None);
+            }
+        }
+        for b in &self.enc_mid {
+            a = b.run(&a);
+        }
+        let (s, t) = self.enc_norm_out.affine(&a);
+        Ok(self.enc_conv_out.run(&a, Pre::NormSilu(&s, &t), None))
+    }
+
+    /// The code head's logits of [`Self::features`] (`[h * w, n_embed]` row-major as the
+    /// activation's data); `None` without a head.
+    pub fn logits(&self, features: &Act) -> Option<Act> {
+        self.head.as_ref().map(|h| h.run(features, Pre::Copy, None))
+    }
+
+    /// `quant_conv` of [`Self::features`]: the pre-quantization latent ([`VqModel::encode`]).
+    pub fn latent(&self, features: &Act) -> Act {
+        self.quant_conv.run(features, Pre::Copy, None)
+    }
+
+    /// Decodes one code per latent cell (`[h][w]` row-major) into packed planes `4 x H x W`
+    /// (`H = h * f`), as [`VqModel::decode`] of the codebook rows.
+    pub fn decode_codes(&self, codes: &[u32], h: usize, w: usize) -> Result<Vec<f32>, ModelError> {
+        let d = self.embed_dim;
+        let n = self.codebook.len() / d.max(1);
+        if codes.len() != h * w {
+            return Err(ModelError::shape(
+                "codes to decode",
+                format!("{} codes for {h}x{w} cells", h * w),
+                codes.len(),
+            ));
+        }
+        let mut data = Vec::with_capacity(h * w * d);
+        for &c in codes {
+            let c = c as usize;
+            if c >= n {
+                return Err(ModelError::shape("a code to decode", format!("an index below {n}"), c));
+            }
+            data.extend_from_slice(&self.codebook[c * d..(c + 1) * d]);
+        }
+        let z = Act { h, w, c: d, data };
+        let mut a = self.dec_conv_in.run(&self.post_quant.run(&z, Pre::Copy, None), Pre::Copy, None);
+        for b in &self.dec_mid {
+            a = b.run(&a);
+        }
+        for level in &self.up {
+            for b in &level.blocks {
+                a = b.run(&a);
+            }
+            if let Some(us) = &level.resample {
+                a = us.run(&a, Pre::Up2, None);
+            }
+        }
+        let (s, t) = self.dec_norm_out.affine(&a);
+        let out = self.dec_conv_out.run(&a, Pre::NormSilu(&s, &t), None);
+        Ok(pixel_shuffle_planes(&out, self.patch))
+    }
+}
+
+/// Depth to space in PyTorch's channel order (`c r r`), NHWC in, planes (`c x H r x W r`) out.
+fn pixel_shuffle_planes(a: &Act, r: usize) -> Vec<f32> {
+    let c = a.c / (r * r);
+    let (oh, ow) = (a.h * r, a.w * r);
+    let mut out = vec![0.0f32; c * oh * ow];
+    for y in 0..a.h {
+        for x in 0..a.w {
+            let px = &a.data[(y * a.w + x) * a.c..(y * a.w + x + 1) * a.c];
+            for ch in 0..c {
+                for i in 0..r {
+                    for j in 0..r {
+                        out[(ch * oh + y * r + i) * ow + x * r + j] = px[(ch * r + i) * r + j];
+                    }
+                }
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Distribution, Tensor};
+
+    fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    }
+
+    fn scale(a: &[f32]) -> f32 {
+        a.iter().map(|x| x.abs()).fold(0.0, f32::max).max(1e-6)
+    }
+
+    /// A model with every weight moved off its initial value (norms' scales and shifts too, and
+    /// a codebook spread like a trained one's), so no term of the pass is an identity.
+    fn model(config: &ModelConfig) -> VqModel {
+        let device = crate::default_device();
+        let m = VqModel::new(config, 3, &device).expect("model");
+        let mut tensors = crate::params::named_tensors(&m);
+        for (i, (name, t)) in tensors.iter_mut().enumerate() {
+            let spread = if name.contains("embedding") { 1.0 } else { 0.2 };
+            for (j, v) in t.values.iter_mut().enumerate() {
+                // a cheap deterministic hash in [-1, 1)
+                let u =
+                    (((i * 7919 + j) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 40) as f32 / (1u64 << 24) as f32;
+                *v += spread * (2.0 * u - 1.0);
+            }
+        }
+        crate::params::load_named(m, &tensors, false, false).expect("perturbed weights")
+    }
+
+    fn configs() -> Vec<ModelConfig> {
+        let mut tiny = ModelConfig::tiny();
+        tiny.mid_attn = false;
+        tiny.code_head = true;
+        let mut compact = ModelConfig::compact();
+        compact.code_head = true;
+        vec![tiny, ModelConfig::compact(), compact]
+    }
+
+    #[test]
+    fn features_logits_and_latent_equal_burns() {
+        let device = crate::default_device();
+        for cfg in configs() {
+            let m = model(&cfg);
+            let net = NhwcNet::new(&m, &cfg).expect("weights").expect("no attention");
+            let (c, h, w) = (cfg.input_channels(), 64, 48);
+            let x = Tensor::<4>::random([1, c, h, w], Distribution::Uniform(-1.0, 1.0), &device);
+            let host = to_host(x.clone()).expect("host");
+            let feats = net.features(&host, c, h, w).expect("features");
+            let burn_feats = to_host(m.features(x.clone()).permute([0, 2, 3, 1])).expect("host");
+            let d = max_abs_diff(&feats.data, &burn_feats);
+            assert!(d <= 1e-4 * scale(&burn_feats), "{}: features differ by {d}", cfg.name);
+            let z = net.latent(&feats);
+            let burn_z = to_host(m.encode(x.clone()).permute([0, 2, 3, 1])).expect("host");
+            assert!(max_abs_diff(&z.data, &burn_z) <= 1e-4 * scale(&burn_z), "{}: latent", cfg.name);
+            match (net.logits(&feats), m.code_logits(x)) {
+                (Some(l), Some(bl)) => {
+                    let bl = to_host(bl.permute([0, 2, 3, 1])).expect("host");
+                    assert!(max_abs_diff(&l.data, &bl) <= 1e-4 * scale(&bl), "{}: logits", cfg.name);
+                }
+                (None, None) => {}
+                _ => panic!("{}: a head on one side only", cfg.name),
+            }
+        }
+    }
+
+    #[test]
+    fn decoding_codes_equals_burns() {
+        let device = crate::default_device();
+        for cfg in configs() {
+            let m = model(&cfg);
+            let net = NhwcNet::new(&m, &cfg).expect("weights").expect("no attention");
+            let (h, w) = (5, 7); // odd, to run the kernels' tails
+            let codes: Vec<u32> = (0..h * w).map(|i| ((i * 37 + 5) % cfg.n_embed) as u32).collect();
+            let ours = net.decode_codes(&codes, h, w).expect("decode");
+            let rows = m.quantize.lookup(&codes, &device);
+            let z_q = rows.reshape([1, h, w, cfg.embed_dim]).permute([0, 3, 1, 2]);
+            let theirs = to_host(m.decode(z_q)).expect("host");
+            let d = max_abs_diff(&ours, &theirs);
+            assert!(d <= 1e-4 * scale(&theirs), "{}: decoded planes differ by {d}", cfg.name);
+        }
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let mut cfg = ModelConfig::tiny();
+        cfg.mid_attn = false;
+        let net = NhwcNet::new(&model(&cfg), &cfg).expect("weights").expect("no attention");
+        assert!(net.features(&[0.0; 10], 5, 2, 2).is_err());
+        assert!(net.decode_codes(&[0, 1], 2, 2).is_err());
+        assert!(net.decode_codes(&[cfg.n_embed as u32; 4], 2, 2).is_err());
+    }
+
+    #[test]
+    fn a_model_with_attention_keeps_burns_path() {
+        let cfg = ModelConfig::tiny(); // attention at the bottleneck
+        assert!(cfg.mid_attn);
+        assert!(NhwcNet::new(&model(&cfg), &cfg).expect("weights").is_none());
+    }
+
+    #[test]
+    fn layouts_round_trip() {
+        let v: Vec<f32> = (0..2 * 3 * 4).map(|i| i as f32).collect();
+        let a = Act::from_nchw(&v, 2, 3, 4);
+        assert_eq!(a.data[1], 12.0); // pixel 0, channel 1
+        assert_eq!(a.to_nchw(), v);
+        // pixel shuffle: channel (c, i, j) of pixel (y, x) lands at (y r + i, x r + j)
+        let a = Act { h: 1, w: 1, c: 4, data: vec![1.0, 2.0, 3.0, 4.0] };
+        assert_eq!(pixel_shuffle_planes(&a, 2), vec![1.0, 2.0, 3.0, 4.0]);
+        let a = Act { h: 1, w: 2, c: 4, data: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0] };
+        assert_eq!(pixel_shuffle_planes(&a, 2), vec![1.0, 2.0, 5.0, 6.0, 3.0, 4.0, 7.0, 8.0]);
+    }
+}
