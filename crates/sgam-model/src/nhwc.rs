@@ -43,6 +43,9 @@ pub struct Act {
     pub c: usize,
     /// `h * w * c` values, channels fastest.
     pub data: Vec<f32>,
+    /// Per channel, the sum and the sum of squares of its values (f64), where the convolution
+    /// that made it kept them (what a following GroupNorm needs).
+    pub sums: Option<Vec<[f64; 2]>>,
 }
 
 impl Act {
@@ -50,12 +53,16 @@ impl Act {
     pub fn from_nchw(values: &[f32], c: usize, h: usize, w: usize) -> Self {
         let hw = h * w;
         let mut data = vec![0.0; hw * c];
-        for (ch, plane) in values.chunks_exact(hw).take(c).enumerate() {
-            for (p, v) in plane.iter().enumerate() {
-                data[p * c + ch] = *v;
-            }
+        if c > 0 && w > 0 && values.len() >= hw * c {
+            data.par_chunks_mut(w * c).enumerate().for_each(|(y, row)| {
+                for (x, px) in row.chunks_exact_mut(c).enumerate() {
+                    for (ch, v) in px.iter_mut().enumerate() {
+                        *v = values[ch * hw + y * w + x];
+                    }
+                }
+            });
         }
-        Self { h, w, c, data }
+        Self { h, w, c, data, sums: None }
     }
 
     /// To planes (`c x h x w`).
@@ -102,17 +109,18 @@ struct ConvW {
 
 impl ConvW {
     fn new(conv: &Conv2d, stride: usize, pad: [usize; 4]) -> Result<Self, ModelError> {
-        let weight = conv.weight.val();
-        let [cout, cin, kh, kw] = weight.dims();
-        if kh != kw {
-            return Err(ModelError::shape(
-                "a convolution for the CPU kernels",
-                "a square kernel",
-                format!("{kh}x{kw}"),
-            ));
-        }
-        let k = kh;
-        let host = to_host(weight)?;
+        let (host, dims, bias) = conv_host(conv)?;
+        Ok(Self::from_host(&host, dims, bias.as_deref(), stride, pad))
+    }
+
+    /// From PyTorch-layout weights `[cout, cin, k, k]` (row-major) and an optional bias.
+    fn from_host(
+        host: &[f32],
+        [cout, cin, k]: [usize; 3],
+        bias_host: Option<&[f32]>,
+        stride: usize,
+        pad: [usize; 4],
+    ) -> Self {
         let nv = cout.div_ceil(LANES);
         let mut lanes = vec![[0.0f32; LANES]; k * k * cin * nv];
         for co in 0..cout {
@@ -123,12 +131,10 @@ impl ConvW {
             }
         }
         let mut bias = vec![[0.0f32; LANES]; nv];
-        if let Some(b) = &conv.bias {
-            for (co, v) in to_host(b.val())?.into_iter().enumerate().take(cout) {
-                bias[co / LANES][co % LANES] = v;
-            }
+        for (co, v) in bias_host.unwrap_or(&[]).iter().enumerate().take(cout) {
+            bias[co / LANES][co % LANES] = *v;
         }
-        Ok(Self {
+        Self {
             k,
             stride,
             pad,
@@ -137,7 +143,45 @@ impl ConvW {
             nv,
             w: lanes.into_iter().map(f32x16::new).collect(),
             bias: bias.into_iter().map(f32x16::new).collect(),
-        })
+        }
+    }
+
+    /// `conv` after the 1x1 convolution `first`, as one convolution without padding: the
+    /// weights composed, and `first`'s bias carried through `conv`'s taps. Exact only because
+    /// there is no padding (a padded border would see `first`'s bias, not zeros).
+    fn after_pointwise(conv: &Conv2d, first: &Conv2d, stride: usize) -> Result<Self, ModelError> {
+        let (w2, [cout, mid, k], b2) = conv_host(conv)?;
+        let (w1, [mid1, cin, k1], b1) = conv_host(first)?;
+        if mid1 != mid || k1 != 1 {
+            return Err(ModelError::shape(
+                "a 1x1 convolution to fold into the next",
+                format!("{mid} outputs, 1x1"),
+                format!("{mid1} outputs, {k1}x{k1}"),
+            ));
+        }
+        let kk = k * k;
+        let mut w = vec![0.0f32; cout * cin * kk];
+        let mut bias = b2.unwrap_or_else(|| vec![0.0; cout]);
+        for co in 0..cout {
+            for m in 0..mid {
+                for tap in 0..kk {
+                    let a = w2[(co * mid + m) * kk + tap];
+                    for ci in 0..cin {
+                        w[(co * cin + ci) * kk + tap] += a * w1[m * cin + ci];
+                    }
+                    if let Some(b1) = &b1 {
+                        bias[co] += a * b1[m];
+                    }
+                }
+            }
+        }
+        Ok(Self::from_host(&w, [cout, cin, k], Some(&bias), stride, [0; 4]))
+    }
+
+    /// The convolution with its output negated (weights and bias).
+    fn negated(mut self) -> Self {
+        self.w.iter_mut().chain(self.bias.iter_mut()).for_each(|v| *v = -*v);
+        self
     }
 
     /// A `k x k` convolution with "same" padding (`k / 2` on every side), stride 1.
@@ -147,8 +191,18 @@ impl ConvW {
         Self::new(conv, 1, [p; 4])
     }
 
-    /// Convolves `x` after `pre`, adding `skip` (the output's shape) when given.
+    /// Convolves `x` after `pre`, adding `skip` (the output's shape) when given; the output
+    /// keeps its per-channel sums for a following GroupNorm.
     fn run(&self, x: &Act, pre: Pre<'_>, skip: Option<&Act>) -> Act {
+        self.run_with(x, pre, skip, true)
+    }
+
+    /// [`Self::run`], keeping the output's sums only when `sums`.
+    ///
+    /// The output rows are cut into one band per thread; each band copies the input rows it
+    /// reads (its own, and the `k - 1` it shares with the next band) into its own padded buffer,
+    /// so a convolution is one parallel region.
+    fn run_with(&self, x: &Act, pre: Pre<'_>, skip: Option<&Act>, sums: bool) -> Act {
         let (k, s, cin, cout) = (self.k, self.stride, self.cin, self.cout);
         debug_assert_eq!(x.c, cin, "input channels");
         let (ih, iw) = match pre {
@@ -158,22 +212,25 @@ impl ConvW {
         let [pt, pl, pb, pr] = self.pad;
         let (ph, pw) = (ih + pt + pb, iw + pl + pr);
         if ph < k || pw < k {
-            return Act { h: 0, w: 0, c: cout, data: Vec::new() };
+            return Act { h: 0, w: 0, c: cout, data: Vec::new(), sums: None };
         }
         let (oh, ow) = ((ph - k) / s + 1, (pw - k) / s + 1);
         let rs = pw * cin;
-        let mut p = vec![0.0f32; ph * rs];
         // per-channel maps tiled over a row, so a row is one flat loop
-        let (row_scale, row_shift) = match pre {
+        let (row_scale, row_shift): (Vec<f32>, Vec<f32>) = match pre {
             Pre::NormSilu(scale, shift) => {
                 ((0..iw * cin).map(|i| scale[i % cin]).collect(), (0..iw * cin).map(|i| shift[i % cin]).collect())
             }
             _ => (Vec::new(), Vec::new()),
         };
         let src_rs = x.w * cin;
-        p.par_chunks_mut(rs).enumerate().skip(pt).take(ih).for_each(|(py, prow)| {
+        // padded row `py` into `dst` (a row of `pw * cin` zeros)
+        let fill = |py: usize, dst: &mut [f32]| {
+            if py < pt || py >= pt + ih {
+                return;
+            }
             let y = py - pt;
-            let dst = &mut prow[pl * cin..(pl + iw) * cin];
+            let dst = &mut dst[pl * cin..(pl + iw) * cin];
             match pre {
                 Pre::Copy => dst.copy_from_slice(&x.data[y * src_rs..(y + 1) * src_rs]),
                 Pre::NormSilu(..) => norm_silu(&x.data[y * src_rs..(y + 1) * src_rs], &row_scale, &row_shift, dst),
@@ -184,27 +241,66 @@ impl ConvW {
                     }
                 }
             }
-        });
-        let mut out = vec![0.0f32; oh * ow * cout];
+        };
         let ors = ow * cout;
-        out.par_chunks_mut(ors).enumerate().for_each(|(oy, orow)| {
-            let skip_row = skip.map(|a| &a.data[oy * ors..(oy + 1) * ors]);
-            let mut v0 = 0;
-            while v0 < self.nv {
-                let left = self.nv - v0;
-                if left >= 4 {
-                    self.columns::<4, 4>(&p, rs, oy, ow, v0, orow, skip_row);
-                    v0 += 4;
-                } else if left >= 2 {
-                    self.columns::<8, 2>(&p, rs, oy, ow, v0, orow, skip_row);
-                    v0 += 2;
-                } else {
-                    self.columns::<8, 1>(&p, rs, oy, ow, v0, orow, skip_row);
-                    v0 += 1;
+        let bands = rayon::current_num_threads().clamp(1, oh);
+        let band_rows = oh.div_ceil(bands);
+        let mut out = vec![0.0f32; oh * ors];
+        let band_sums: Vec<Vec<[f64; 2]>> = out
+            .par_chunks_mut(band_rows * ors)
+            .enumerate()
+            .map(|(b, oband)| {
+                let oy0 = b * band_rows;
+                let rows = oband.len() / ors;
+                // the band's padded input: rows `py0..py1`, its first row local row 0
+                let py0 = oy0 * s;
+                let py1 = (oy0 + rows - 1) * s + k;
+                let mut p = vec![0.0f32; (py1 - py0) * rs];
+                for (i, prow) in p.chunks_exact_mut(rs).enumerate() {
+                    fill(py0 + i, prow);
+                }
+                let mut acc = vec![[0.0f64; 2]; if sums { cout } else { 0 }];
+                for (r, orow) in oband.chunks_exact_mut(ors).enumerate() {
+                    let oy = oy0 + r;
+                    let skip_row = skip.map(|a| &a.data[oy * ors..(oy + 1) * ors]);
+                    let mut v0 = 0;
+                    while v0 < self.nv {
+                        let left = self.nv - v0;
+                        if left >= 4 {
+                            self.columns::<6, 4>(&p, rs, r, ow, v0, orow, skip_row);
+                            v0 += 4;
+                        } else if left >= 2 {
+                            self.columns::<8, 2>(&p, rs, r, ow, v0, orow, skip_row);
+                            v0 += 2;
+                        } else {
+                            self.columns::<8, 1>(&p, rs, r, ow, v0, orow, skip_row);
+                            v0 += 1;
+                        }
+                    }
+                    if sums {
+                        for px in orow.chunks_exact(cout) {
+                            for (a, v) in acc.iter_mut().zip(px) {
+                                let v = *v as f64;
+                                a[0] += v;
+                                a[1] += v * v;
+                            }
+                        }
+                    }
+                }
+                acc
+            })
+            .collect();
+        let sums = sums.then(|| {
+            let mut total = vec![[0.0f64; 2]; cout];
+            for band in &band_sums {
+                for (t, b) in total.iter_mut().zip(band) {
+                    t[0] += b[0];
+                    t[1] += b[1];
                 }
             }
+            total
         });
-        Act { h: oh, w: ow, c: cout, data: out }
+        Act { h: oh, w: ow, c: cout, data: out, sums }
     }
 
     /// Output channel vectors `v0..v0 + V` of every pixel of output row `oy`, `R` pixels a tile.
@@ -224,6 +320,16 @@ impl ConvW {
             let acc = self.tile::<R, V>(p, rs, oy, ox, v0);
             self.store(&acc, ox, v0, orow, skip);
             ox += R;
+        }
+        while ox + 4 <= ow {
+            let acc = self.tile::<4, V>(p, rs, oy, ox, v0);
+            self.store(&acc, ox, v0, orow, skip);
+            ox += 4;
+        }
+        while ox + 2 <= ow {
+            let acc = self.tile::<2, V>(p, rs, oy, ox, v0);
+            self.store(&acc, ox, v0, orow, skip);
+            ox += 2;
         }
         while ox < ow {
             let acc = self.tile::<1, V>(p, rs, oy, ox, v0);
@@ -301,6 +407,18 @@ impl ConvW {
     }
 }
 
+/// A convolution's weights on the host (`[cout, cin, k, k]`), its `[cout, cin, k]` and bias.
+#[allow(clippy::type_complexity)]
+fn conv_host(conv: &Conv2d) -> Result<(Vec<f32>, [usize; 3], Option<Vec<f32>>), ModelError> {
+    let weight = conv.weight.val();
+    let [cout, cin, kh, kw] = weight.dims();
+    if kh != kw {
+        return Err(ModelError::shape("a convolution for the CPU kernels", "a square kernel", format!("{kh}x{kw}")));
+    }
+    let bias = conv.bias.as_ref().map(|b| to_host(b.val())).transpose()?;
+    Ok((to_host(weight)?, [cout, cin, kh], bias))
+}
+
 /// `dst = silu(src * scale + shift)`, element-wise.
 fn norm_silu(src: &[f32], scale: &[f32], shift: &[f32], dst: &mut [f32]) {
     let full = src.len() / LANES * LANES;
@@ -374,8 +492,20 @@ impl NormW {
         let per_group = |sums: Vec<f64>| -> Vec<f64> {
             (0..g).map(|gi| sums[gi * cg..((gi + 1) * cg).min(c)].iter().sum::<f64>() / count.max(1.0)).collect()
         };
-        let mean = per_group(channel_sums(None));
-        let var = per_group(channel_sums(Some(&mean)));
+        let (mean, var) = match &x.sums {
+            // one pass in f64 (sum and sum of squares, kept by the convolution that made `x`)
+            Some(sums) if sums.len() == c => {
+                let mean = per_group(sums.iter().map(|s| s[0]).collect());
+                let squares = per_group(sums.iter().map(|s| s[1]).collect());
+                let var = squares.iter().zip(&mean).map(|(q, m)| (q - m * m).max(0.0)).collect();
+                (mean, var)
+            }
+            _ => {
+                let mean = per_group(channel_sums(None));
+                let var = per_group(channel_sums(Some(&mean)));
+                (mean, var)
+            }
+        };
         let (mut scale, mut shift) = (vec![0.0f32; c], vec![0.0f32; c]);
         for ch in 0..c {
             let gi = (ch / cg).min(g - 1);
@@ -436,14 +566,17 @@ fn mid(m: &Mid) -> Result<[ResW; 2], ModelError> {
 /// The encoder and decoder of a [`VqModel`] without attention, for the CPU kernels.
 #[derive(Debug)]
 pub struct NhwcNet {
-    mask_in: ConvW,
+    /// The mask fusion (1x1), where it is not folded into the stem.
+    mask_in: Option<ConvW>,
+    input_channels: usize,
     stem: ConvW,
     down: Vec<Level>,
     enc_mid: [ResW; 2],
     enc_norm_out: NormW,
     enc_conv_out: ConvW,
     quant_conv: ConvW,
-    head: Option<ConvW>,
+    /// The code head, negated: its output is the sampler's "distances" (lower is likelier).
+    neg_head: Option<ConvW>,
     /// `[n_embed][embed_dim]`.
     codebook: Vec<f32>,
     embed_dim: usize,
@@ -471,7 +604,12 @@ impl NhwcNet {
             return Ok(None);
         }
         let p = config.patch_size;
-        let stem = if p > 1 { ConvW::new(&enc.conv_in, p, [0; 4])? } else { ConvW::same(&enc.conv_in)? };
+        // a patch stem has no padding: the mask fusion folds into it (one pass over the input)
+        let (mask_in, stem) = if p > 1 {
+            (None, ConvW::after_pointwise(&enc.conv_in, &model.conv_in, p)?)
+        } else {
+            (Some(ConvW::same(&model.conv_in)?), ConvW::same(&enc.conv_in)?)
+        };
         let down = enc
             .down
             .iter()
@@ -495,14 +633,15 @@ impl NhwcNet {
             })
             .collect::<Result<Vec<_>, ModelError>>()?;
         Ok(Some(Self {
-            mask_in: ConvW::same(&model.conv_in)?,
+            mask_in,
+            input_channels: config.input_channels(),
             stem,
             down,
             enc_mid: mid(&enc.mid)?,
             enc_norm_out: NormW::new(&enc.norm_out)?,
             enc_conv_out: ConvW::same(&enc.conv_out)?,
             quant_conv: ConvW::same(&model.quant_conv)?,
-            head: model.code_head.as_ref().map(ConvW::same).transpose()?,
+            neg_head: model.code_head.as_ref().map(|h| ConvW::same(h).map(ConvW::negated)).transpose()?,
             codebook: to_host(model.quantize.embedding.weight.val())?,
             embed_dim: config.embed_dim,
             post_quant: ConvW::same(&model.post_quant_conv)?,
@@ -517,15 +656,18 @@ impl NhwcNet {
 
     /// Mask fusion + encoder ([`VqModel::features`]) of one packed image `x` (NCHW planes).
     pub fn features(&self, x: &[f32], c: usize, h: usize, w: usize) -> Result<Act, ModelError> {
-        if c != self.mask_in.cin || x.len() != c * h * w {
+        if c != self.input_channels || x.len() != c * h * w {
             return Err(ModelError::shape(
                 "an input to the CPU kernels",
-                format!("{} planes of {h}x{w}", self.mask_in.cin),
+                format!("{} planes of {h}x{w}", self.input_channels),
                 format!("{c} planes, {} values", x.len()),
             ));
         }
         let x = Act::from_nchw(x, c, h, w);
-        let mut a = self.stem.run(&self.mask_in.run(&x, Pre::Copy, None), Pre::Copy, None);
+        let mut a = match &self.mask_in {
+            Some(m) => self.stem.run(&m.run_with(&x, Pre::Copy, None, false), Pre::Copy, None),
+            None => self.stem.run(&x, Pre::Copy, None),
+        };
         for level in &self.down {
             for b in &level.blocks {
                 a = b.run(&a);
@@ -541,15 +683,15 @@ impl NhwcNet {
         Ok(self.enc_conv_out.run(&a, Pre::NormSilu(&s, &t), None))
     }
 
-    /// The code head's logits of [`Self::features`] (`[h * w, n_embed]` row-major as the
-    /// activation's data); `None` without a head.
-    pub fn logits(&self, features: &Act) -> Option<Act> {
-        self.head.as_ref().map(|h| h.run(features, Pre::Copy, None))
+    /// The code head's logits of [`Self::features`], negated (`[h * w, n_embed]` row-major as
+    /// the activation's data: lower is likelier); `None` without a head.
+    pub fn neg_logits(&self, features: &Act) -> Option<Act> {
+        self.neg_head.as_ref().map(|h| h.run_with(features, Pre::Copy, None, false))
     }
 
     /// `quant_conv` of [`Self::features`]: the pre-quantization latent ([`VqModel::encode`]).
     pub fn latent(&self, features: &Act) -> Act {
-        self.quant_conv.run(features, Pre::Copy, None)
+        self.quant_conv.run_with(features, Pre::Copy, None, false)
     }
 
     /// Decodes one code per latent cell (`[h][w]` row-major) into packed planes `4 x H x W`
@@ -572,7 +714,7 @@ impl NhwcNet {
             }
             data.extend_from_slice(&self.codebook[c * d..(c + 1) * d]);
         }
-        let z = Act { h, w, c: d, data };
+        let z = Act { h, w, c: d, data, sums: None };
         let mut a = self.dec_conv_in.run(&self.post_quant.run(&z, Pre::Copy, None), Pre::Copy, None);
         for b in &self.dec_mid {
             a = b.run(&a);
@@ -649,7 +791,10 @@ mod tests {
         tiny.code_head = true;
         let mut compact = ModelConfig::compact();
         compact.code_head = true;
-        vec![tiny, ModelConfig::compact(), compact]
+        compact.ray_channels = true;
+        // a 3x3 stem (padded): the mask fusion stays its own pass
+        let plain_stem = ModelConfig { patch_size: 1, resolution: 16, ..tiny.clone() };
+        vec![tiny, plain_stem, ModelConfig::compact(), compact]
     }
 
     #[test]
@@ -668,9 +813,9 @@ mod tests {
             let z = net.latent(&feats);
             let burn_z = to_host(m.encode(x.clone()).permute([0, 2, 3, 1])).expect("host");
             assert!(max_abs_diff(&z.data, &burn_z) <= 1e-4 * scale(&burn_z), "{}: latent", cfg.name);
-            match (net.logits(&feats), m.code_logits(x)) {
+            match (net.neg_logits(&feats), m.code_logits(x)) {
                 (Some(l), Some(bl)) => {
-                    let bl = to_host(bl.permute([0, 2, 3, 1])).expect("host");
+                    let bl = to_host(bl.permute([0, 2, 3, 1]).neg()).expect("host");
                     assert!(max_abs_diff(&l.data, &bl) <= 1e-4 * scale(&bl), "{}: logits", cfg.name);
                 }
                 (None, None) => {}
@@ -720,9 +865,9 @@ mod tests {
         assert_eq!(a.data[1], 12.0); // pixel 0, channel 1
         assert_eq!(a.to_nchw(), v);
         // pixel shuffle: channel (c, i, j) of pixel (y, x) lands at (y r + i, x r + j)
-        let a = Act { h: 1, w: 1, c: 4, data: vec![1.0, 2.0, 3.0, 4.0] };
+        let a = Act { h: 1, w: 1, c: 4, data: vec![1.0, 2.0, 3.0, 4.0], sums: None };
         assert_eq!(pixel_shuffle_planes(&a, 2), vec![1.0, 2.0, 3.0, 4.0]);
-        let a = Act { h: 1, w: 2, c: 4, data: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0] };
+        let a = Act { h: 1, w: 2, c: 4, data: vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0], sums: None };
         assert_eq!(pixel_shuffle_planes(&a, 2), vec![1.0, 2.0, 5.0, 6.0, 3.0, 4.0, 7.0, 8.0]);
     }
 }

@@ -104,9 +104,20 @@ pub fn pack_input(
     config: &ModelConfig,
     device: &Device,
 ) -> Result<Tensor<4>, ModelError> {
+    let (values, shape) = pack_input_values(frames, missing, intrinsics, config)?;
+    Ok(Tensor::from_data(TensorData::new(values, shape), device))
+}
+
+/// [`pack_input`]'s values on the host (row-major) and their shape.
+pub fn pack_input_values(
+    frames: &[&RgbdFrame],
+    missing: &[Option<&[bool]>],
+    intrinsics: &[Intrinsics],
+    config: &ModelConfig,
+) -> Result<(Vec<f32>, [usize; 4]), ModelError> {
     let (values, shape) = pack_values(frames, missing, &config.depth)?;
     if !config.ray_channels {
-        return Ok(Tensor::from_data(TensorData::new(values, shape), device));
+        return Ok((values, shape));
     }
     let [b, _, h, w] = shape;
     if intrinsics.len() != b {
@@ -119,7 +130,7 @@ pub fn pack_input(
         out.extend((0..hw).map(|p| 2.0 * ((p % w) as f32 - k.cx) / k.fx));
         out.extend((0..hw).map(|p| 2.0 * ((p / w) as f32 - k.cy) / k.fy));
     }
-    Ok(Tensor::from_data(TensorData::new(out, [b, 7, h, w]), device))
+    Ok((out, [b, 7, h, w]))
 }
 
 /// Packs target frames into the 4-channel `[B, 4, H, W]` training target (no mask channel;

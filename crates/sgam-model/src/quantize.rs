@@ -9,6 +9,7 @@
 use burn::tensor::Tensor;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::model::VqModel;
@@ -139,40 +140,66 @@ pub fn select_codes_by_class(
     plain: &[bool],
     rng: &mut ChaCha8Rng,
 ) -> (Vec<u32>, Vec<f32>) {
+    let t = temperature.max(1e-12) as f64;
+    let tw = within as f64;
+    let in_plain = |j: usize| plain.get(j).copied().unwrap_or(false);
+    let sampled = |i: usize| missing.get(i).copied().unwrap_or(false) && temperature > 0.0;
+    // the codes of each class, in code order
+    let members: [Vec<usize>; 2] = [false, true].map(|c| (0..k).filter(|&j| in_plain(j) == c).collect());
+    // Everything that needs no random number, per row and in parallel: the nearest code; for a
+    // sampled row the two classes' softmax masses, and the nearest code of each class (`within
+    // <= 0`) or the weights of each class's codes in the softmax over that class. The draws
+    // below then run in row order, as one sequential loop would.
+    struct Row {
+        nearest: usize,
+        mass: [f64; 2],
+        class_nearest: [Option<usize>; 2],
+        weights: [Vec<f64>; 2],
+    }
+    let rows: Vec<Row> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let row = &dist[i * k..(i + 1) * k];
+            let nearest = argmin(row);
+            let mut out = Row { nearest, mass: [0.0; 2], class_nearest: [None; 2], weights: [Vec::new(), Vec::new()] };
+            if !sampled(i) {
+                return out;
+            }
+            let dmin = row[nearest] as f64;
+            let mut cmin = [f64::INFINITY; 2];
+            for (j, &d) in row.iter().enumerate() {
+                let c = in_plain(j) as usize;
+                out.mass[c] += (-(d as f64 - dmin) / t).exp();
+                cmin[c] = cmin[c].min(d as f64);
+                out.class_nearest[c] = match out.class_nearest[c] {
+                    Some(b) if row[b] <= d => Some(b),
+                    _ => Some(j),
+                };
+            }
+            if within > 0.0 {
+                out.weights =
+                    [0, 1].map(|c| members[c].iter().map(|&j| (-(row[j] as f64 - cmin[c]) / tw).exp()).collect());
+            }
+            out
+        })
+        .collect();
     let mut codes = Vec::with_capacity(n);
     let mut probs = Vec::with_capacity(n);
-    let t = temperature.max(1e-12) as f64;
-    for i in 0..n {
-        let row = &dist[i * k..(i + 1) * k];
-        let nearest = argmin(row);
-        if !missing.get(i).copied().unwrap_or(false) || temperature <= 0.0 {
-            codes.push(nearest as u32);
+    for (i, r) in rows.iter().enumerate() {
+        if !sampled(i) {
+            codes.push(r.nearest as u32);
             probs.push(1.0);
             continue;
         }
-        let in_plain = |j: usize| plain.get(j).copied().unwrap_or(false);
-        let dmin = row[nearest] as f64;
-        let mut mass = [0f64; 2];
-        for (j, &d) in row.iter().enumerate() {
-            mass[in_plain(j) as usize] += (-(d as f64 - dmin) / t).exp();
-        }
-        let total = mass[0] + mass[1];
-        let class = rng.random::<f64>() * total >= mass[0]; // true = plain
-        let p_class = mass[class as usize] / total.max(1e-300);
-        let members = (0..k).filter(|&j| in_plain(j) == class);
+        let total = r.mass[0] + r.mass[1];
+        let class = rng.random::<f64>() * total >= r.mass[0]; // true = plain
+        let p_class = r.mass[class as usize] / total.max(1e-300);
         let (pick, p_within) = if within <= 0.0 {
-            let best = members.fold(None, |b: Option<usize>, j| match b {
-                Some(b) if row[b] <= row[j] => Some(b),
-                _ => Some(j),
-            });
-            (best.unwrap_or(nearest), 1.0)
+            (r.class_nearest[class as usize].unwrap_or(r.nearest), 1.0)
         } else {
-            let tw = within as f64;
-            let members: Vec<usize> = members.collect();
-            let cmin = members.iter().map(|&j| row[j] as f64).fold(f64::INFINITY, f64::min);
-            let weights: Vec<f64> = members.iter().map(|&j| (-(row[j] as f64 - cmin) / tw).exp()).collect();
-            let (at, sum) = draw_index(&weights, rng);
-            (members.get(at).copied().unwrap_or(nearest), weights.get(at).copied().unwrap_or(1.0) / sum.max(1e-300))
+            let (members, weights) = (&members[class as usize], &r.weights[class as usize]);
+            let (at, sum) = draw_index(weights, rng);
+            (members.get(at).copied().unwrap_or(r.nearest), weights.get(at).copied().unwrap_or(1.0) / sum.max(1e-300))
         };
         codes.push(pick as u32);
         probs.push((p_class * p_within) as f32);

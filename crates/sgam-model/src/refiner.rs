@@ -17,7 +17,7 @@ use crate::config::ModelConfig;
 use crate::context::{CellState, ContextInput};
 use crate::model::VqModel;
 use crate::nhwc::NhwcNet;
-use crate::packing::{missing_cells, pack_input, unpack, unpack_values};
+use crate::packing::{missing_cells, pack_input, pack_input_values, unpack, unpack_values};
 use crate::params::{from_safetensors_bytes, load_named, save_safetensors, WeightPrecision};
 use crate::quantize::{select_codes, select_codes_by_class, squared_distances, to_host, Sampling};
 use crate::ModelError;
@@ -233,16 +233,32 @@ impl VqRefiner {
         self.nhwc.as_ref().filter(|_| self.use_nhwc)
     }
 
-    /// Per latent cell of the packed input `x` (`[1, C, H, W]`), per code: the code head's
-    /// negated logits, or without a head the squared distance of the encoder's latent to the
-    /// code (`[cells * n_embed]`, cells row-major). Lower is likelier.
-    fn code_distances(&self, x: Tensor<4>) -> Result<Vec<f32>, ModelError> {
+    /// The encoder's features of `frame` with `mask` in the CPU kernels (no burn tensor).
+    fn cpu_features(
+        &self,
+        net: &NhwcNet,
+        frame: &RgbdFrame,
+        mask: &[bool],
+        intrinsics: &Intrinsics,
+    ) -> Result<crate::nhwc::Act, ModelError> {
+        let (x, [_, c, h, w]) = pack_input_values(&[frame], &[Some(mask)], &[*intrinsics], &self.config)?;
+        net.features(&x, c, h, w)
+    }
+
+    /// Per latent cell of `frame` with `mask`, per code: the code head's negated logits, or
+    /// without a head the squared distance of the encoder's latent to the code (`[cells *
+    /// n_embed]`, cells row-major). Lower is likelier.
+    fn code_distances(
+        &self,
+        frame: &RgbdFrame,
+        mask: &[bool],
+        intrinsics: &Intrinsics,
+    ) -> Result<Vec<f32>, ModelError> {
         let codebook = || self.model.quantize.embedding.weight.val();
         if let Some(net) = self.cpu_net() {
-            let [_, c, h, w] = x.dims();
-            let feats = net.features(&to_host(x)?, c, h, w)?;
-            return match net.logits(&feats) {
-                Some(l) => Ok(l.data.into_iter().map(|v| -v).collect()),
+            let feats = self.cpu_features(net, frame, mask, intrinsics)?;
+            return match net.neg_logits(&feats) {
+                Some(l) => Ok(l.data),
                 None => {
                     let z = net.latent(&feats);
                     let rows = Tensor::<2>::from_data(TensorData::new(z.data, [z.h * z.w, z.c]), &self.device);
@@ -250,6 +266,7 @@ impl VqRefiner {
                 }
             };
         }
+        let x = pack_input(&[frame], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
         match self.model.code_logits(x.clone()) {
             Some(logits) => {
                 let [_, kk, zh, zw] = logits.dims();
@@ -490,8 +507,7 @@ impl VqRefiner {
         let mut codes = Vec::new();
         let mut passes_log: Vec<Vec<usize>> = Vec::new();
         for pass in 0..passes {
-            let x = pack_input(&[&work], &[Some(mask.as_slice())], &[intrinsics], &self.config, &self.device)?;
-            let dist = self.code_distances(x)?;
+            let dist = self.code_distances(&work, &mask, &intrinsics)?;
             let open: Vec<bool> = cells.iter().zip(&committed).map(|(m, c)| *m && c.is_none()).collect();
             let (drawn, drawn_p) = match (within, sampling) {
                 (Some(within), Sampling::Temperature { temperature, .. }) => {
@@ -621,27 +637,26 @@ impl VqRefiner {
         };
         let sampling = self.effective_sampling();
         let k = self.config.n_embed;
-        let x = pack_input(&[work], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
         let z = self.config.z_channels;
-        let (feats, head_rows) = match self.cpu_net() {
+        // the head's logits negated: lower is likelier
+        let (feats, neg_head) = match self.cpu_net() {
             Some(net) => {
-                let [_, c, h, w] = x.dims();
-                let feats = net.features(&to_host(x)?, c, h, w)?;
-                let Some(logits) = net.logits(&feats) else {
+                let feats = self.cpu_features(net, work, mask, intrinsics)?;
+                let Some(logits) = net.neg_logits(&feats) else {
                     return Err(ModelError::MissingPart { part: "a code head", operation: "context sampling" });
                 };
                 (Tensor::<2>::from_data(TensorData::new(feats.data, [ch * cw, z]), &self.device), logits.data)
             }
             None => {
+                let x = pack_input(&[work], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
                 let feats = self.model.features(x);
                 let logits = head.forward(feats.clone());
-                let head_rows = to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]))?;
-                (feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]), head_rows)
+                let neg_head = to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]).neg())?;
+                (feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]), neg_head)
             }
         };
         // observed cells: the head's most likely code
-        let neg: Vec<f32> = head_rows.iter().map(|v| -v).collect();
-        let mut codes = select_codes(&neg, ch * cw, k, None, Sampling::Argmin, &mut self.rng);
+        let mut codes = select_codes(&neg_head, ch * cw, k, None, Sampling::Argmin, &mut self.rng);
         let mut states: Vec<CellState> =
             cells.iter().map(|&m| if m { CellState::Open } else { CellState::Observed }).collect();
         let codebook = self.model.quantize.embedding.weight.val();
@@ -673,8 +688,8 @@ impl VqRefiner {
                     .iter()
                     .enumerate()
                     .flat_map(|(j, &i)| {
-                        let (h, r) = (&head_rows[i * k..(i + 1) * k], &residual[j * k..(j + 1) * k]);
-                        h.iter().zip(r).map(|(a, b)| -(a + b))
+                        let (h, r) = (&neg_head[i * k..(i + 1) * k], &residual[j * k..(j + 1) * k]);
+                        h.iter().zip(r).map(|(a, b)| a - b)
                     })
                     .collect();
                 let n = window_cells.len();
@@ -801,9 +816,8 @@ impl VqRefiner {
         intrinsics: &Intrinsics,
         [ch, cw]: [usize; 2],
     ) -> Result<Vec<u32>, ModelError> {
-        let x = pack_input(&[frame], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
         let k = self.config.n_embed;
-        let dist = self.code_distances(x)?;
+        let dist = self.code_distances(frame, mask, intrinsics)?;
         Ok(select_codes(&dist, ch * cw, k, None, Sampling::Argmin, &mut self.rng))
     }
 

@@ -537,3 +537,86 @@ fn decoder_tuning_moves_only_the_decoder_and_lowers_its_depth_error() {
     let other = VqModel::new(&cfg, 6, &device).unwrap();
     assert!(DecoderTuner::new(&cfg, &tensors, other, &cfg, &tc).is_err());
 }
+
+/// The draws of [`select_codes_by_class`] (computed in parallel, drawn in row order) equal those
+/// of the plain sequential loop it replaced, value for value: same codes, same probabilities,
+/// and the random stream left in the same place.
+#[test]
+fn two_level_draws_equal_the_sequential_reference() {
+    fn draw_index(weights: &[f64], rng: &mut ChaCha8Rng) -> (usize, f64) {
+        let total: f64 = weights.iter().sum();
+        let mut u = rng.random::<f64>() * total;
+        for (i, w) in weights.iter().enumerate() {
+            if u < *w {
+                return (i, total);
+            }
+            u -= w;
+        }
+        (0, total)
+    }
+    #[allow(clippy::too_many_arguments)]
+    fn reference(
+        dist: &[f32],
+        n: usize,
+        k: usize,
+        missing: &[bool],
+        temperature: f32,
+        within: f32,
+        plain: &[bool],
+        rng: &mut ChaCha8Rng,
+    ) -> (Vec<u32>, Vec<f32>) {
+        let (mut codes, mut probs) = (Vec::new(), Vec::new());
+        let t = temperature.max(1e-12) as f64;
+        for i in 0..n {
+            let row = &dist[i * k..(i + 1) * k];
+            let nearest =
+                row.iter().enumerate().fold((0, f32::INFINITY), |b, (j, &d)| if d < b.1 { (j, d) } else { b }).0;
+            if !missing.get(i).copied().unwrap_or(false) || temperature <= 0.0 {
+                codes.push(nearest as u32);
+                probs.push(1.0);
+                continue;
+            }
+            let in_plain = |j: usize| plain.get(j).copied().unwrap_or(false);
+            let dmin = row[nearest] as f64;
+            let mut mass = [0f64; 2];
+            for (j, &d) in row.iter().enumerate() {
+                mass[in_plain(j) as usize] += (-(d as f64 - dmin) / t).exp();
+            }
+            let total = mass[0] + mass[1];
+            let class = rng.random::<f64>() * total >= mass[0];
+            let p_class = mass[class as usize] / total.max(1e-300);
+            let members = (0..k).filter(|&j| in_plain(j) == class);
+            let (pick, p_within) = if within <= 0.0 {
+                let best = members.fold(None, |b: Option<usize>, j| match b {
+                    Some(b) if row[b] <= row[j] => Some(b),
+                    _ => Some(j),
+                });
+                (best.unwrap_or(nearest), 1.0)
+            } else {
+                let tw = within as f64;
+                let members: Vec<usize> = members.collect();
+                let cmin = members.iter().map(|&j| row[j] as f64).fold(f64::INFINITY, f64::min);
+                let weights: Vec<f64> = members.iter().map(|&j| (-(row[j] as f64 - cmin) / tw).exp()).collect();
+                let (at, sum) = draw_index(&weights, rng);
+                (members.get(at).copied().unwrap_or(nearest), weights.get(at).copied().unwrap_or(1.0) / sum.max(1e-300))
+            };
+            codes.push(pick as u32);
+            probs.push((p_class * p_within) as f32);
+        }
+        (codes, probs)
+    }
+    let mut gen = ChaCha8Rng::seed_from_u64(5);
+    let (n, k) = (300, 64);
+    // ties included: distances on a coarse grid
+    let table: Vec<f32> = (0..n * k).map(|_| (gen.random_range(0..40) as f32) * 0.25).collect();
+    let missing: Vec<bool> = (0..n).map(|_| gen.random_bool(0.6)).collect();
+    for plain in [(0..k).map(|j| j % 3 == 0).collect::<Vec<_>>(), vec![true; k], vec![false; 5]] {
+        for (t, within) in [(1.0, 0.5), (2.0, 2.0), (1.0, 0.0), (0.0, 0.5)] {
+            let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(9), ChaCha8Rng::seed_from_u64(9));
+            let ours = select_codes_by_class(&table, n, k, &missing, t, within, &plain, &mut a);
+            let theirs = reference(&table, n, k, &missing, t, within, &plain, &mut b);
+            assert_eq!(ours, theirs, "t {t}, within {within}");
+            assert_eq!(a.random::<u64>(), b.random::<u64>(), "t {t}, within {within}: the stream moved differently");
+        }
+    }
+}

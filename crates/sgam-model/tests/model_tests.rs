@@ -7,6 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use sgam_core::{Image, RgbdFrame};
 use sgam_model::burn::module::Module;
 use sgam_model::burn::tensor::{Distribution, Tensor};
+use sgam_model::context::ContextConfig;
 use sgam_model::packing::{pack_values, unpack_values};
 use sgam_model::params::{named_tensors, WeightPrecision};
 use sgam_model::quantize::{kmeans_revive, quantize, select_codes, CodebookUsage, FeatureBuffer};
@@ -595,7 +596,7 @@ fn learning_rate_is_constant_then_decays_along_a_cosine_to_the_floor() {
 
 /// The refiner's CPU kernels (`sgam_model::nhwc`) and burn's pass of the same model draw the
 /// same codes and the same pixels, through one pass (argmin) and through sampling in passes, with
-/// and without a code head.
+/// and without a code head, and with the scene-wide context.
 #[test]
 fn the_cpu_kernels_complete_frames_as_burns_pass_does() {
     let device = default_device();
@@ -608,7 +609,24 @@ fn the_cpu_kernels_complete_frames_as_burns_pass_does() {
     let cases = [
         (tiny.clone(), RefinerOptions { sampling: Sampling::Argmin, ..RefinerOptions::default() }),
         (ModelConfig { code_tau: Some(0.5), ..tiny.clone() }, sampled),
-        (ModelConfig { code_head: true, code_tau: Some(1.0), ..tiny }, sampled),
+        (ModelConfig { code_head: true, code_tau: Some(1.0), ..tiny.clone() }, sampled),
+        // the scene-wide context: the head's logits and the features it attends over
+        (
+            ModelConfig {
+                code_head: true,
+                code_tau: Some(1.0),
+                context: Some(ContextConfig {
+                    dim: 16,
+                    layers: 1,
+                    heads: 2,
+                    mlp_ratio: 2,
+                    window_cells: 8,
+                    margin_cells: 2,
+                }),
+                ..tiny
+            },
+            sampled,
+        ),
     ];
     let (w, h) = (40u32, 36u32); // not multiples of the downsampling factor: padded and cropped
     let f = synthetic_frame(w, h, 6);
