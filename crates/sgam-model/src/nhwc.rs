@@ -25,9 +25,12 @@ use wide::f32x16;
 
 use crate::blocks::{Norm, ResnetBlock};
 use crate::config::ModelConfig;
+use crate::context::CellState;
 use crate::model::{Mid, VqModel};
 use crate::quantize::to_host;
 use crate::ModelError;
+
+mod context;
 
 /// Lanes of one vector of output channels.
 const LANES: usize = 16;
@@ -263,20 +266,7 @@ impl ConvW {
                 for (r, orow) in oband.chunks_exact_mut(ors).enumerate() {
                     let oy = oy0 + r;
                     let skip_row = skip.map(|a| &a.data[oy * ors..(oy + 1) * ors]);
-                    let mut v0 = 0;
-                    while v0 < self.nv {
-                        let left = self.nv - v0;
-                        if left >= 4 {
-                            self.columns::<6, 4>(&p, rs, r, ow, v0, orow, skip_row);
-                            v0 += 4;
-                        } else if left >= 2 {
-                            self.columns::<8, 2>(&p, rs, r, ow, v0, orow, skip_row);
-                            v0 += 2;
-                        } else {
-                            self.columns::<8, 1>(&p, rs, r, ow, v0, orow, skip_row);
-                            v0 += 1;
-                        }
-                    }
+                    self.row(&p, rs, r, ow, orow, skip_row);
                     if sums {
                         for px in orow.chunks_exact(cout) {
                             for (a, v) in acc.iter_mut().zip(px) {
@@ -301,6 +291,76 @@ impl ConvW {
             total
         });
         Act { h: oh, w: ow, c: cout, data: out, sums }
+    }
+
+    /// Every output channel of every pixel of output row `oy` (`ow` pixels) of the padded input
+    /// `p` (rows of `rs` values).
+    fn row(&self, p: &[f32], rs: usize, oy: usize, ow: usize, orow: &mut [f32], skip: Option<&[f32]>) {
+        let mut v0 = 0;
+        while v0 < self.nv {
+            let left = self.nv - v0;
+            if left >= 4 {
+                self.columns::<6, 4>(p, rs, oy, ow, v0, orow, skip);
+                v0 += 4;
+            } else if left >= 2 {
+                self.columns::<8, 2>(p, rs, oy, ow, v0, orow, skip);
+                v0 += 2;
+            } else {
+                self.columns::<8, 1>(p, rs, oy, ow, v0, orow, skip);
+                v0 += 1;
+            }
+        }
+    }
+
+    /// A dense layer (`k = 1`) over `n` rows of `x` (`[n, cin]`, row-major; the rows are the
+    /// pixels of one row of a 1x1 convolution): `[n, cout]`, plus `skip` (`[n, cout]`) when
+    /// given. The rows are cut into one band per thread.
+    fn dense(&self, x: &[f32], n: usize, skip: Option<&[f32]>) -> Vec<f32> {
+        self.dense_in_bands(x, n, skip, rayon::current_num_threads())
+    }
+
+    /// [`Self::dense`] in at most `bands` bands (1: on the calling thread only).
+    fn dense_in_bands(&self, x: &[f32], n: usize, skip: Option<&[f32]>, bands: usize) -> Vec<f32> {
+        let (cin, cout) = (self.cin, self.cout);
+        debug_assert!(self.k == 1 && self.stride == 1 && x.len() >= n * cin, "a dense layer");
+        let mut out = vec![0.0f32; n * cout];
+        if n == 0 || cout == 0 {
+            return out;
+        }
+        let band = n.div_ceil(bands.clamp(1, n));
+        let run = |(b, oband): (usize, &mut [f32])| {
+            let (r0, m) = (b * band, oband.len() / cout);
+            let skip = skip.map(|s| &s[r0 * cout..(r0 + m) * cout]);
+            self.row(&x[r0 * cin..(r0 + m) * cin], 0, 0, m, oband, skip);
+        };
+        if band >= n {
+            run((0, &mut out));
+        } else {
+            out.par_chunks_mut(band * cout).enumerate().for_each(run);
+        }
+        out
+    }
+
+    /// A dense layer `cin -> cout` without bias whose weight `[out, in]` is `weight(out, in)`
+    /// (attention's keys and values, packed per call).
+    fn dense_from(cout: usize, cin: usize, weight: impl Fn(usize, usize) -> f32) -> Self {
+        let nv = cout.div_ceil(LANES);
+        let mut lanes = vec![[0.0f32; LANES]; cin * nv];
+        for ci in 0..cin {
+            for co in 0..cout {
+                lanes[ci * nv + co / LANES][co % LANES] = weight(co, ci);
+            }
+        }
+        Self {
+            k: 1,
+            stride: 1,
+            pad: [0; 4],
+            cin,
+            cout,
+            nv,
+            w: lanes.into_iter().map(f32x16::new).collect(),
+            bias: vec![f32x16::ZERO; nv],
+        }
     }
 
     /// Output channel vectors `v0..v0 + V` of every pixel of output row `oy`, `R` pixels a tile.
@@ -588,6 +648,8 @@ pub struct NhwcNet {
     dec_norm_out: NormW,
     dec_conv_out: ConvW,
     patch: usize,
+    /// The scene-wide context, where the model has one.
+    context: Option<context::CpuContext>,
 }
 
 impl NhwcNet {
@@ -651,6 +713,10 @@ impl NhwcNet {
             dec_norm_out: NormW::new(&dec.norm_out)?,
             dec_conv_out: ConvW::same(&dec.conv_out)?,
             patch: p,
+            context: match (&model.context, &config.context) {
+                (Some(c), Some(cfg)) => Some(context::CpuContext::new(c, cfg.heads)?),
+                _ => None,
+            },
         }))
     }
 
@@ -687,6 +753,19 @@ impl NhwcNet {
     /// the activation's data: lower is likelier); `None` without a head.
     pub fn neg_logits(&self, features: &Act) -> Option<Act> {
         self.neg_head.as_ref().map(|h| h.run_with(features, Pre::Copy, None, false))
+    }
+
+    /// The context's residual code logits (`[h * w, n_embed]`) of one window of `h x w` cells:
+    /// their encoder features (`[h * w, z]`, as [`Self::features`] rows) and states, the
+    /// revealed cells' codes read from the model's codebook ([`crate::context::CodeContext`]).
+    /// `None` for a model without a context.
+    pub fn context_residual(
+        &self,
+        features: &[f32],
+        states: &[CellState],
+        [h, w]: [usize; 2],
+    ) -> Option<Result<Vec<f32>, ModelError>> {
+        self.context.as_ref().map(|c| c.residual(features, states, &self.codebook, [h, w]))
     }
 
     /// `quant_conv` of [`Self::features`]: the pre-quantization latent ([`VqModel::encode`]).

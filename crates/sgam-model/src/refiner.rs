@@ -639,20 +639,26 @@ impl VqRefiner {
         let k = self.config.n_embed;
         let z = self.config.z_channels;
         // the head's logits negated: lower is likelier
-        let (feats, neg_head) = match self.cpu_net() {
+        // the encoder's features per cell: host rows for the CPU kernels, else a burn tensor
+        enum Features {
+            Host(Vec<f32>),
+            Burn(Box<Tensor<2>>),
+        }
+        let cpu = self.nhwc.as_ref().filter(|_| self.use_nhwc);
+        let (feats, neg_head) = match cpu {
             Some(net) => {
                 let feats = self.cpu_features(net, work, mask, intrinsics)?;
                 let Some(logits) = net.neg_logits(&feats) else {
                     return Err(ModelError::MissingPart { part: "a code head", operation: "context sampling" });
                 };
-                (Tensor::<2>::from_data(TensorData::new(feats.data, [ch * cw, z]), &self.device), logits.data)
+                (Features::Host(feats.data), logits.data)
             }
             None => {
                 let x = pack_input(&[work], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
                 let feats = self.model.features(x);
                 let logits = head.forward(feats.clone());
                 let neg_head = to_host(logits.permute([0, 2, 3, 1]).reshape([ch * cw, k]).neg())?;
-                (feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]), neg_head)
+                (Features::Burn(Box::new(feats.permute([0, 2, 3, 1]).reshape([ch * cw, z]))), neg_head)
             }
         };
         // observed cells: the head's most likely code
@@ -666,11 +672,21 @@ impl VqRefiner {
             let [wy0, wx0, wh, ww] = win.window;
             let window_cells: Vec<usize> =
                 (wy0..wy0 + wh).flat_map(|y| (wx0..wx0 + ww).map(move |x| y * cw + x)).collect();
-            let idx = Tensor::<1, Int>::from_data(
-                TensorData::new(window_cells.iter().map(|&i| i as i64).collect::<Vec<_>>(), [window_cells.len()]),
-                &self.device,
-            );
-            let win_feats = feats.clone().select(0, idx);
+            let win_feats = match &feats {
+                Features::Host(all) => {
+                    Features::Host(window_cells.iter().flat_map(|&i| all[i * z..(i + 1) * z].iter().copied()).collect())
+                }
+                Features::Burn(all) => {
+                    let idx = Tensor::<1, Int>::from_data(
+                        TensorData::new(
+                            window_cells.iter().map(|&i| i as i64).collect::<Vec<_>>(),
+                            [window_cells.len()],
+                        ),
+                        &self.device,
+                    );
+                    Features::Burn(Box::new((**all).clone().select(0, idx)))
+                }
+            };
             let core_open = |states: &[CellState]| -> Vec<bool> {
                 window_cells.iter().map(|&i| states[i] == CellState::Open && win.contains(i / cw, i % cw)).collect()
             };
@@ -682,8 +698,21 @@ impl VqRefiner {
             for pass in 0..passes {
                 let open = core_open(&states);
                 let win_states: Vec<CellState> = window_cells.iter().map(|&i| states[i]).collect();
-                let input = ContextInput::new(win_feats.clone(), &win_states, &codebook, [1, wh, ww]);
-                let residual = to_host(context.forward(input))?;
+                let residual = match &win_feats {
+                    Features::Host(f) => match cpu.and_then(|net| net.context_residual(f, &win_states, [wh, ww])) {
+                        Some(r) => r?,
+                        None => {
+                            return Err(ModelError::MissingPart {
+                                part: "a context in the CPU kernels",
+                                operation: "context sampling",
+                            })
+                        }
+                    },
+                    Features::Burn(f) => {
+                        let input = ContextInput::new((**f).clone(), &win_states, &codebook, [1, wh, ww]);
+                        to_host(context.forward(input))?
+                    }
+                };
                 let dist: Vec<f32> = window_cells
                     .iter()
                     .enumerate()
