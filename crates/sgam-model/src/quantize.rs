@@ -79,28 +79,36 @@ pub fn select_codes(
     sampling: Sampling,
     rng: &mut ChaCha8Rng,
 ) -> Vec<u32> {
-    let mut out = Vec::with_capacity(n);
-    for i in 0..n {
-        let row = &dist[i * k..(i + 1) * k];
-        let nearest = argmin(row);
-        let sample = missing.is_some_and(|m| m.get(i).copied().unwrap_or(false));
-        let choice = match sampling {
-            Sampling::Temperature { temperature, top_k } if sample && temperature > 0.0 && top_k > 1 => {
-                let mut order: Vec<usize> = (0..k).collect();
-                let top = top_k.min(k);
-                order.select_nth_unstable_by(top - 1, |a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
-                let mut cand: Vec<usize> = order[..top].to_vec();
-                cand.sort_by(|a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
-                let dmin = row[cand[0]];
-                let weights: Vec<f64> =
-                    cand.iter().map(|&j| (-((row[j] - dmin) as f64) / temperature as f64).exp()).collect();
-                cand[draw_index(&weights, rng).0]
+    // per row and in parallel: the nearest code, and for a sampled row its candidates and
+    // their softmax weights; the draws then run in row order, as one sequential loop would
+    let rows: Vec<(usize, Vec<usize>, Vec<f64>)> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let row = &dist[i * k..(i + 1) * k];
+            let nearest = argmin(row);
+            let sample = missing.is_some_and(|m| m.get(i).copied().unwrap_or(false));
+            match sampling {
+                Sampling::Temperature { temperature, top_k } if sample && temperature > 0.0 && top_k > 1 => {
+                    let mut order: Vec<usize> = (0..k).collect();
+                    let top = top_k.min(k);
+                    order.select_nth_unstable_by(top - 1, |a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
+                    let mut cand: Vec<usize> = order[..top].to_vec();
+                    cand.sort_by(|a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
+                    let dmin = row[cand[0]];
+                    let weights: Vec<f64> =
+                        cand.iter().map(|&j| (-((row[j] - dmin) as f64) / temperature as f64).exp()).collect();
+                    (nearest, cand, weights)
+                }
+                _ => (nearest, Vec::new(), Vec::new()),
             }
-            _ => nearest,
-        };
-        out.push(choice as u32);
-    }
-    out
+        })
+        .collect();
+    rows.iter()
+        .map(|(nearest, cand, weights)| match cand.is_empty() {
+            true => *nearest as u32,
+            false => cand[draw_index(weights, rng).0] as u32,
+        })
+        .collect()
 }
 
 /// Draws an index with probability proportional to `weights` (one uniform draw from `rng`; the
