@@ -12,7 +12,7 @@ fn median(v: &mut [f64]) -> f64 {
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let reps: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(10);
+    let reps: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(10).max(1);
     // the bundled model's design: code head, ray channels, a trained temperature
     let base = ModelConfig { code_head: true, ray_channels: true, code_tau: Some(1.0), ..ModelConfig::compact() };
     let variants: Vec<(&str, ModelConfig)> = vec![

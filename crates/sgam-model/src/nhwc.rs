@@ -47,8 +47,10 @@ pub struct Act {
     /// `h * w * c` values, channels fastest.
     pub data: Vec<f32>,
     /// Per channel, the sum and the sum of squares of its values (f64), where the convolution
-    /// that made it kept them (what a following GroupNorm needs).
-    pub sums: Option<Vec<[f64; 2]>>,
+    /// that made it kept them (what a following GroupNorm needs; added row by row in row order,
+    /// so they do not depend on the thread count). Not public: data changed outside would make
+    /// them stale.
+    pub(crate) sums: Option<Vec<[f64; 2]>>,
 }
 
 impl Act {
@@ -249,7 +251,9 @@ impl ConvW {
         let bands = rayon::current_num_threads().clamp(1, oh);
         let band_rows = oh.div_ceil(bands);
         let mut out = vec![0.0f32; oh * ors];
-        let band_sums: Vec<Vec<[f64; 2]>> = out
+        // per output row: the row's per-channel sums (rows summed in order below, so the sums do
+        // not depend on how many bands, i.e. threads, there were)
+        let band_sums: Vec<Vec<Vec<[f64; 2]>>> = out
             .par_chunks_mut(band_rows * ors)
             .enumerate()
             .map(|(b, oband)| {
@@ -262,30 +266,24 @@ impl ConvW {
                 for (i, prow) in p.chunks_exact_mut(rs).enumerate() {
                     fill(py0 + i, prow);
                 }
-                let mut acc = vec![[0.0f64; 2]; if sums { cout } else { 0 }];
+                let mut row_sums = Vec::with_capacity(if sums { rows } else { 0 });
                 for (r, orow) in oband.chunks_exact_mut(ors).enumerate() {
                     let oy = oy0 + r;
                     let skip_row = skip.map(|a| &a.data[oy * ors..(oy + 1) * ors]);
                     self.row(&p, rs, r, ow, orow, skip_row);
                     if sums {
-                        for px in orow.chunks_exact(cout) {
-                            for (a, v) in acc.iter_mut().zip(px) {
-                                let v = *v as f64;
-                                a[0] += v;
-                                a[1] += v * v;
-                            }
-                        }
+                        row_sums.push(channel_sums(orow, cout, None));
                     }
                 }
-                acc
+                row_sums
             })
             .collect();
         let sums = sums.then(|| {
             let mut total = vec![[0.0f64; 2]; cout];
-            for band in &band_sums {
-                for (t, b) in total.iter_mut().zip(band) {
-                    t[0] += b[0];
-                    t[1] += b[1];
+            for row in band_sums.iter().flatten() {
+                for (t, r) in total.iter_mut().zip(row) {
+                    t[0] += r[0];
+                    t[1] += r[1];
                 }
             }
             total
@@ -498,6 +496,23 @@ fn norm_silu(src: &[f32], scale: &[f32], shift: &[f32], dst: &mut [f32]) {
     }
 }
 
+/// Per channel of the pixels in `values` (`c` values each): the sum and the sum of squares (f64);
+/// with `centre` (per group of `c / centre.len()` channels) the sum of squared deviations from it
+/// in the second slot.
+fn channel_sums(values: &[f32], c: usize, centre: Option<&[f64]>) -> Vec<[f64; 2]> {
+    let mut s = vec![[0.0f64; 2]; c];
+    let cg = centre.map_or(1, |m| (c / m.len().max(1)).max(1));
+    for px in values.chunks_exact(c.max(1)) {
+        for (ch, (acc, v)) in s.iter_mut().zip(px).enumerate() {
+            let v = *v as f64;
+            let d = centre.map_or(v, |m| v - m[(ch / cg).min(m.len() - 1)]);
+            acc[0] += v;
+            acc[1] += d * d;
+        }
+    }
+    s
+}
+
 /// A GroupNorm's parameters.
 #[derive(Debug)]
 struct NormW {
@@ -524,31 +539,6 @@ impl NormW {
         let g = self.groups.clamp(1, c.max(1));
         let cg = (c / g).max(1);
         let count = (x.h * x.w * cg) as f64;
-        let row = (x.w * c).max(1);
-        let channel_sums = |centre: Option<&[f64]>| -> Vec<f64> {
-            x.data
-                .par_chunks(row)
-                .map(|r| {
-                    let mut s = vec![0.0f64; c];
-                    for px in r.chunks_exact(c) {
-                        for (ch, (acc, v)) in s.iter_mut().zip(px).enumerate() {
-                            let d = match centre {
-                                Some(m) => *v as f64 - m[ch / cg],
-                                None => *v as f64,
-                            };
-                            *acc += if centre.is_some() { d * d } else { d };
-                        }
-                    }
-                    s
-                })
-                .reduce(
-                    || vec![0.0f64; c],
-                    |mut a, b| {
-                        a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                        a
-                    },
-                )
-        };
         let per_group = |sums: Vec<f64>| -> Vec<f64> {
             (0..g).map(|gi| sums[gi * cg..((gi + 1) * cg).min(c)].iter().sum::<f64>() / count.max(1.0)).collect()
         };
@@ -560,9 +550,10 @@ impl NormW {
                 let var = squares.iter().zip(&mean).map(|(q, m)| (q - m * m).max(0.0)).collect();
                 (mean, var)
             }
+            // two passes in f64, in pixel order
             _ => {
-                let mean = per_group(channel_sums(None));
-                let var = per_group(channel_sums(Some(&mean)));
+                let mean = per_group(channel_sums(&x.data, c, None).iter().map(|s| s[0]).collect());
+                let var = per_group(channel_sums(&x.data, c, Some(&mean)).iter().map(|s| s[1]).collect());
                 (mean, var)
             }
         };
@@ -604,7 +595,7 @@ impl ResW {
         let (s2, t2) = self.norm2.affine(&h);
         match &self.shortcut {
             Some(proj) => {
-                let skip = proj.run(x, Pre::Copy, None);
+                let skip = proj.run_with(x, Pre::Copy, None, false);
                 self.conv2.run(&h, Pre::NormSilu(&s2, &t2), Some(&skip))
             }
             None => self.conv2.run(&h, Pre::NormSilu(&s2, &t2), Some(x)),
@@ -917,6 +908,27 @@ mod tests {
             let theirs = to_host(m.decode(z_q)).expect("host");
             let d = max_abs_diff(&ours, &theirs);
             assert!(d <= 1e-4 * scale(&theirs), "{}: decoded planes differ by {d}", cfg.name);
+        }
+    }
+
+    #[test]
+    fn results_do_not_depend_on_the_thread_count() {
+        let mut cfg = ModelConfig::compact();
+        cfg.code_head = true;
+        let net = NhwcNet::new(&model(&cfg), &cfg).expect("weights").expect("no attention");
+        let (c, h, w) = (cfg.input_channels(), 64, 40);
+        let x: Vec<f32> = (0..c * h * w).map(|i| ((i * 7919) % 1000) as f32 / 500.0 - 1.0).collect();
+        let codes: Vec<u32> = (0..8 * 5).map(|i| (i * 37 % cfg.n_embed) as u32).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
+            pool.install(|| {
+                let f = net.features(&x, c, h, w).expect("features");
+                (net.neg_logits(&f).expect("head").data, net.decode_codes(&codes, 8, 5).expect("decode"))
+            })
+        };
+        let one = run(1);
+        for threads in [2, 3, 5] {
+            assert!(run(threads) == one, "{threads} threads differ from one");
         }
     }
 

@@ -151,7 +151,9 @@ pub fn select_codes_by_class(
     let t = temperature.max(1e-12) as f64;
     let tw = within as f64;
     let in_plain = |j: usize| plain.get(j).copied().unwrap_or(false);
-    let sampled = |i: usize| missing.get(i).copied().unwrap_or(false) && temperature > 0.0;
+    // as the sequential loop had it: a NaN temperature samples (at the clamped `t`)
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    let sampled = |i: usize| missing.get(i).copied().unwrap_or(false) && !(temperature <= 0.0);
     // the codes of each class, in code order
     let members: [Vec<usize>; 2] = [false, true].map(|c| (0..k).filter(|&j| in_plain(j) == c).collect());
     // Everything that needs no random number, per row and in parallel: the nearest code; for a

@@ -611,12 +611,80 @@ fn two_level_draws_equal_the_sequential_reference() {
     let table: Vec<f32> = (0..n * k).map(|_| (gen.random_range(0..40) as f32) * 0.25).collect();
     let missing: Vec<bool> = (0..n).map(|_| gen.random_bool(0.6)).collect();
     for plain in [(0..k).map(|j| j % 3 == 0).collect::<Vec<_>>(), vec![true; k], vec![false; 5]] {
-        for (t, within) in [(1.0, 0.5), (2.0, 2.0), (1.0, 0.0), (0.0, 0.5)] {
+        for (t, within) in [(1.0, 0.5), (2.0, 2.0), (1.0, 0.0), (0.0, 0.5), (f32::NAN, 0.5)] {
             let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(9), ChaCha8Rng::seed_from_u64(9));
             let ours = select_codes_by_class(&table, n, k, &missing, t, within, &plain, &mut a);
             let theirs = reference(&table, n, k, &missing, t, within, &plain, &mut b);
             assert_eq!(ours, theirs, "t {t}, within {within}");
             assert_eq!(a.random::<u64>(), b.random::<u64>(), "t {t}, within {within}: the stream moved differently");
+        }
+    }
+}
+
+/// [`select_codes`] (rows computed in parallel, drawn in order) equals the sequential loop it
+/// replaced, draw for draw, and leaves the random stream in the same place.
+#[test]
+fn temperature_draws_equal_the_sequential_reference() {
+    fn reference(
+        dist: &[f32],
+        n: usize,
+        k: usize,
+        missing: Option<&[bool]>,
+        sampling: Sampling,
+        rng: &mut ChaCha8Rng,
+    ) -> Vec<u32> {
+        let mut out = Vec::with_capacity(n);
+        for i in 0..n {
+            let row = &dist[i * k..(i + 1) * k];
+            let nearest =
+                row.iter().enumerate().fold((0, f32::INFINITY), |b, (j, &d)| if d < b.1 { (j, d) } else { b }).0;
+            let sample = missing.is_some_and(|m| m.get(i).copied().unwrap_or(false));
+            let choice = match sampling {
+                Sampling::Temperature { temperature, top_k } if sample && temperature > 0.0 && top_k > 1 => {
+                    let mut order: Vec<usize> = (0..k).collect();
+                    let top = top_k.min(k);
+                    order.select_nth_unstable_by(top - 1, |a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
+                    let mut cand: Vec<usize> = order[..top].to_vec();
+                    cand.sort_by(|a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
+                    let dmin = row[cand[0]];
+                    let weights: Vec<f64> =
+                        cand.iter().map(|&j| (-((row[j] - dmin) as f64) / temperature as f64).exp()).collect();
+                    let total: f64 = weights.iter().sum();
+                    let mut u = rng.random::<f64>() * total;
+                    let mut at = 0;
+                    for (i, w) in weights.iter().enumerate() {
+                        if u < *w {
+                            at = i;
+                            break;
+                        }
+                        u -= w;
+                    }
+                    cand[at]
+                }
+                _ => nearest,
+            };
+            out.push(choice as u32);
+        }
+        out
+    }
+    let mut gen = ChaCha8Rng::seed_from_u64(8);
+    let (n, k) = (200, 50);
+    let table: Vec<f32> = (0..n * k).map(|_| (gen.random_range(0..30) as f32) * 0.3).collect();
+    let missing: Vec<bool> = (0..n).map(|_| gen.random_bool(0.5)).collect();
+    for sampling in [
+        Sampling::Argmin,
+        Sampling::Temperature { temperature: 1.0, top_k: usize::MAX },
+        Sampling::Temperature { temperature: 0.5, top_k: 4 },
+        Sampling::Temperature { temperature: 2.0, top_k: 1 },
+    ] {
+        for m in [Some(missing.as_slice()), None] {
+            let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(2), ChaCha8Rng::seed_from_u64(2));
+            assert_eq!(
+                select_codes(&table, n, k, m, sampling, &mut a),
+                reference(&table, n, k, m, sampling, &mut b),
+                "{sampling:?}"
+            );
+            assert_eq!(a.random::<u64>(), b.random::<u64>(), "{sampling:?}: the stream moved differently");
         }
     }
 }

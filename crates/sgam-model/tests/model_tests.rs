@@ -598,6 +598,7 @@ fn learning_rate_is_constant_then_decays_along_a_cosine_to_the_floor() {
 /// same codes and the same pixels, through one pass (argmin) and through sampling in passes, with
 /// and without a code head, and with the scene-wide context.
 #[test]
+#[cfg(not(feature = "wgpu"))] // the CPU kernels run on the CPU backend only
 fn the_cpu_kernels_complete_frames_as_burns_pass_does() {
     let device = default_device();
     let tiny = ModelConfig { mid_attn: false, ..ModelConfig::tiny() };

@@ -254,6 +254,9 @@ impl CpuContext {
                 format!("{} states, {} values", states.len(), features.len()),
             ));
         }
+        if n == 0 {
+            return Ok(Vec::new());
+        }
         let mut revealed = vec![0.0f32; n * e];
         for (i, s) in states.iter().enumerate() {
             if let CellState::Revealed(c) = s {
