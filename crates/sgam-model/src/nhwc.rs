@@ -210,6 +210,23 @@ impl ConvW {
     fn run_with(&self, x: &Act, pre: Pre<'_>, skip: Option<&Act>, sums: bool) -> Act {
         let (k, s, cin, cout) = (self.k, self.stride, self.cin, self.cout);
         debug_assert_eq!(x.c, cin, "input channels");
+        if k == 1 && s == 1 && self.pad == [0; 4] && matches!(pre, Pre::Copy) {
+            // a pointwise convolution reads its input in place: all pixels as one row of a
+            // dense layer (no padded copy, no row tails)
+            let n = x.h * x.w;
+            let data = self.dense(&x.data, n, skip.map(|a| a.data.as_slice()));
+            let sums = sums.then(|| {
+                let mut total = vec![[0.0f64; 2]; cout];
+                for row in data.chunks(x.w.max(1) * cout) {
+                    for (t, r) in total.iter_mut().zip(channel_sums(row, cout, None)) {
+                        t[0] += r[0];
+                        t[1] += r[1];
+                    }
+                }
+                total
+            });
+            return Act { h: x.h, w: x.w, c: cout, data, sums };
+        }
         let (ih, iw) = match pre {
             Pre::Up2 => (2 * x.h, 2 * x.w),
             _ => (x.h, x.w),
