@@ -79,16 +79,20 @@ pub fn select_codes(
     sampling: Sampling,
     rng: &mut ChaCha8Rng,
 ) -> Vec<u32> {
-    // per row and in parallel: the nearest code, and for a sampled row its candidates and
-    // their softmax weights; the draws then run in row order, as one sequential loop would
-    let rows: Vec<(usize, Vec<usize>, Vec<f64>)> = (0..n)
+    let draws = |i: usize| {
+        missing.is_some_and(|m| m.get(i).copied().unwrap_or(false))
+            && matches!(sampling, Sampling::Temperature { temperature, top_k } if temperature > 0.0 && top_k > 1)
+    };
+    // the uniforms a sequential loop would draw, in its order (one per sampled row); then every
+    // row in parallel
+    let uniforms: Vec<f64> = (0..n).map(|i| if draws(i) { rng.random::<f64>() } else { 0.0 }).collect();
+    (0..n)
         .into_par_iter()
         .map(|i| {
             let row = &dist[i * k..(i + 1) * k];
             let nearest = argmin(row);
-            let sample = missing.is_some_and(|m| m.get(i).copied().unwrap_or(false));
             match sampling {
-                Sampling::Temperature { temperature, top_k } if sample && temperature > 0.0 && top_k > 1 => {
+                Sampling::Temperature { temperature, top_k } if draws(i) => {
                     let mut order: Vec<usize> = (0..k).collect();
                     let top = top_k.min(k);
                     order.select_nth_unstable_by(top - 1, |a, b| row[*a].total_cmp(&row[*b]).then(a.cmp(b)));
@@ -97,25 +101,20 @@ pub fn select_codes(
                     let dmin = row[cand[0]];
                     let weights: Vec<f64> =
                         cand.iter().map(|&j| (-((row[j] - dmin) as f64) / temperature as f64).exp()).collect();
-                    (nearest, cand, weights)
+                    cand[draw_index_at(&weights, uniforms[i]).0] as u32
                 }
-                _ => (nearest, Vec::new(), Vec::new()),
+                _ => nearest as u32,
             }
-        })
-        .collect();
-    rows.iter()
-        .map(|(nearest, cand, weights)| match cand.is_empty() {
-            true => *nearest as u32,
-            false => cand[draw_index(weights, rng).0] as u32,
         })
         .collect()
 }
 
-/// Draws an index with probability proportional to `weights` (one uniform draw from `rng`; the
-/// first index when rounding leaves the draw past the end). Returns it and the weights' sum.
-fn draw_index(weights: &[f64], rng: &mut ChaCha8Rng) -> (usize, f64) {
+/// Draws an index with probability proportional to `weights`, given the uniform draw `u01` (in
+/// `[0, 1)`; the first index when rounding leaves the draw past the end). Returns it and the
+/// weights' sum.
+fn draw_index_at(weights: &[f64], u01: f64) -> (usize, f64) {
     let total: f64 = weights.iter().sum();
-    let mut u = rng.random::<f64>() * total;
+    let mut u = u01 * total;
     for (i, w) in weights.iter().enumerate() {
         if u < *w {
             return (i, total);
@@ -154,67 +153,55 @@ pub fn select_codes_by_class(
     // as the sequential loop had it: a NaN temperature samples (at the clamped `t`)
     #[allow(clippy::neg_cmp_op_on_partial_ord)]
     let sampled = |i: usize| missing.get(i).copied().unwrap_or(false) && !(temperature <= 0.0);
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    let draws_within = !(within <= 0.0);
     // the codes of each class, in code order
     let members: [Vec<usize>; 2] = [false, true].map(|c| (0..k).filter(|&j| in_plain(j) == c).collect());
-    // Everything that needs no random number, per row and in parallel: the nearest code; for a
-    // sampled row the two classes' softmax masses, and the nearest code of each class (`within
-    // <= 0`) or the weights of each class's codes in the softmax over that class. The draws
-    // below then run in row order, as one sequential loop would.
-    struct Row {
-        nearest: usize,
-        mass: [f64; 2],
-        class_nearest: [Option<usize>; 2],
-        weights: [Vec<f64>; 2],
-    }
-    let rows: Vec<Row> = (0..n)
+    // the uniforms a sequential loop would draw, in its order: per sampled row the class's, then
+    // (drawing within the class) the code's; then every row in parallel
+    let uniforms: Vec<[f64; 2]> = (0..n)
+        .map(|i| match sampled(i) {
+            true => [rng.random::<f64>(), if draws_within { rng.random::<f64>() } else { 0.0 }],
+            false => [0.0; 2],
+        })
+        .collect();
+    (0..n)
         .into_par_iter()
         .map(|i| {
             let row = &dist[i * k..(i + 1) * k];
             let nearest = argmin(row);
-            let mut out = Row { nearest, mass: [0.0; 2], class_nearest: [None; 2], weights: [Vec::new(), Vec::new()] };
             if !sampled(i) {
-                return out;
+                return (nearest as u32, 1.0f32);
             }
             let dmin = row[nearest] as f64;
-            let mut cmin = [f64::INFINITY; 2];
+            let (mut mass, mut cmin) = ([0.0f64; 2], [f64::INFINITY; 2]);
+            let mut class_nearest: [Option<usize>; 2] = [None; 2];
             for (j, &d) in row.iter().enumerate() {
                 let c = in_plain(j) as usize;
-                out.mass[c] += (-(d as f64 - dmin) / t).exp();
+                mass[c] += (-(d as f64 - dmin) / t).exp();
                 cmin[c] = cmin[c].min(d as f64);
-                out.class_nearest[c] = match out.class_nearest[c] {
+                class_nearest[c] = match class_nearest[c] {
                     Some(b) if row[b] <= d => Some(b),
                     _ => Some(j),
                 };
             }
-            if within > 0.0 {
-                out.weights =
-                    [0, 1].map(|c| members[c].iter().map(|&j| (-(row[j] as f64 - cmin[c]) / tw).exp()).collect());
-            }
-            out
+            let total = mass[0] + mass[1];
+            let class = uniforms[i][0] * total >= mass[0]; // true = plain
+            let c = class as usize;
+            let p_class = mass[c] / total.max(1e-300);
+            let (pick, p_within) = if !draws_within {
+                (class_nearest[c].unwrap_or(nearest), 1.0)
+            } else {
+                let weights: Vec<f64> = members[c].iter().map(|&j| (-(row[j] as f64 - cmin[c]) / tw).exp()).collect();
+                let (at, sum) = draw_index_at(&weights, uniforms[i][1]);
+                (
+                    members[c].get(at).copied().unwrap_or(nearest),
+                    weights.get(at).copied().unwrap_or(1.0) / sum.max(1e-300),
+                )
+            };
+            (pick as u32, (p_class * p_within) as f32)
         })
-        .collect();
-    let mut codes = Vec::with_capacity(n);
-    let mut probs = Vec::with_capacity(n);
-    for (i, r) in rows.iter().enumerate() {
-        if !sampled(i) {
-            codes.push(r.nearest as u32);
-            probs.push(1.0);
-            continue;
-        }
-        let total = r.mass[0] + r.mass[1];
-        let class = rng.random::<f64>() * total >= r.mass[0]; // true = plain
-        let p_class = r.mass[class as usize] / total.max(1e-300);
-        let (pick, p_within) = if within <= 0.0 {
-            (r.class_nearest[class as usize].unwrap_or(r.nearest), 1.0)
-        } else {
-            let (members, weights) = (&members[class as usize], &r.weights[class as usize]);
-            let (at, sum) = draw_index(weights, rng);
-            (members.get(at).copied().unwrap_or(r.nearest), weights.get(at).copied().unwrap_or(1.0) / sum.max(1e-300))
-        };
-        codes.push(pick as u32);
-        probs.push((p_class * p_within) as f32);
-    }
-    (codes, probs)
+        .unzip()
 }
 
 /// Quantizes the encoder output `z` `[B, D, h, w]` with the model's codebook.
