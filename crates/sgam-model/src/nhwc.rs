@@ -69,18 +69,6 @@ impl Act {
         }
         Self { h, w, c, data, sums: None }
     }
-
-    /// To planes (`c x h x w`).
-    pub fn to_nchw(&self) -> Vec<f32> {
-        let hw = self.h * self.w;
-        let mut out = vec![0.0; hw * self.c];
-        for (p, px) in self.data.chunks_exact(self.c.max(1)).enumerate() {
-            for (ch, v) in px.iter().enumerate() {
-                out[ch * hw + p] = *v;
-            }
-        }
-        out
-    }
 }
 
 /// What a convolution applies to its input while copying it into the padded buffer.
@@ -126,12 +114,25 @@ impl ConvW {
         stride: usize,
         pad: [usize; 4],
     ) -> Self {
+        let kk = k * k;
+        Self::packed([cout, cin, k], bias_host, stride, pad, |co, ci, tap| host[(co * cin + ci) * kk + tap])
+    }
+
+    /// The kernel's layout of a `k x k` convolution `cin -> cout` whose weight of output `co`,
+    /// input `ci` and tap `tap` (row-major over the kernel) is `weight(co, ci, tap)`.
+    fn packed(
+        [cout, cin, k]: [usize; 3],
+        bias_host: Option<&[f32]>,
+        stride: usize,
+        pad: [usize; 4],
+        weight: impl Fn(usize, usize, usize) -> f32,
+    ) -> Self {
         let nv = cout.div_ceil(LANES);
         let mut lanes = vec![[0.0f32; LANES]; k * k * cin * nv];
-        for co in 0..cout {
+        for tap in 0..k * k {
             for ci in 0..cin {
-                for tap in 0..k * k {
-                    lanes[(tap * cin + ci) * nv + co / LANES][co % LANES] = host[(co * cin + ci) * k * k + tap];
+                for co in 0..cout {
+                    lanes[(tap * cin + ci) * nv + co / LANES][co % LANES] = weight(co, ci, tap);
                 }
             }
         }
@@ -215,16 +216,8 @@ impl ConvW {
             // dense layer (no padded copy, no row tails)
             let n = x.h * x.w;
             let data = self.dense(&x.data, n, skip.map(|a| a.data.as_slice()));
-            let sums = sums.then(|| {
-                let mut total = vec![[0.0f64; 2]; cout];
-                for row in data.chunks(x.w.max(1) * cout) {
-                    for (t, r) in total.iter_mut().zip(channel_sums(row, cout, None)) {
-                        t[0] += r[0];
-                        t[1] += r[1];
-                    }
-                }
-                total
-            });
+            let sums =
+                sums.then(|| add_rows(data.chunks(x.w.max(1) * cout).map(|r| channel_sums(r, cout, None)), cout));
             return Act { h: x.h, w: x.w, c: cout, data, sums };
         }
         let (ih, iw) = match pre {
@@ -295,16 +288,7 @@ impl ConvW {
                 row_sums
             })
             .collect();
-        let sums = sums.then(|| {
-            let mut total = vec![[0.0f64; 2]; cout];
-            for row in band_sums.iter().flatten() {
-                for (t, r) in total.iter_mut().zip(row) {
-                    t[0] += r[0];
-                    t[1] += r[1];
-                }
-            }
-            total
-        });
+        let sums = sums.then(|| add_rows(band_sums.into_iter().flatten(), cout));
         Act { h: oh, w: ow, c: cout, data: out, sums }
     }
 
@@ -359,23 +343,7 @@ impl ConvW {
     /// A dense layer `cin -> cout` without bias whose weight `[out, in]` is `weight(out, in)`
     /// (attention's keys and values, packed per call).
     fn dense_from(cout: usize, cin: usize, weight: impl Fn(usize, usize) -> f32) -> Self {
-        let nv = cout.div_ceil(LANES);
-        let mut lanes = vec![[0.0f32; LANES]; cin * nv];
-        for ci in 0..cin {
-            for co in 0..cout {
-                lanes[ci * nv + co / LANES][co % LANES] = weight(co, ci);
-            }
-        }
-        Self {
-            k: 1,
-            stride: 1,
-            pad: [0; 4],
-            cin,
-            cout,
-            nv,
-            w: lanes.into_iter().map(f32x16::new).collect(),
-            bias: vec![f32x16::ZERO; nv],
-        }
+        Self::packed([cout, cin, 1], None, 1, [0; 4], |co, ci, _| weight(co, ci))
     }
 
     /// Output channel vectors `v0..v0 + V` of every pixel of output row `oy`, `R` pixels a tile.
@@ -530,6 +498,19 @@ fn channel_sums(values: &[f32], c: usize, centre: Option<&[f64]>) -> Vec<[f64; 2
     s
 }
 
+/// Per-channel sums of rows, added in row order (so they do not depend on how rows were split
+/// between threads).
+fn add_rows(rows: impl Iterator<Item = Vec<[f64; 2]>>, c: usize) -> Vec<[f64; 2]> {
+    let mut total = vec![[0.0f64; 2]; c];
+    for row in rows {
+        for (t, r) in total.iter_mut().zip(row) {
+            t[0] += r[0];
+            t[1] += r[1];
+        }
+    }
+    total
+}
+
 /// A GroupNorm's parameters.
 #[derive(Debug)]
 struct NormW {
@@ -607,16 +588,19 @@ impl ResW {
     }
 
     fn run(&self, x: &Act) -> Act {
-        let (s1, t1) = self.norm1.affine(x);
-        let h = self.conv1.run(x, Pre::NormSilu(&s1, &t1), None);
-        let (s2, t2) = self.norm2.affine(&h);
+        let h = self.conv1.after_norm(&self.norm1, x, None);
         match &self.shortcut {
-            Some(proj) => {
-                let skip = proj.run_with(x, Pre::Copy, None, false);
-                self.conv2.run(&h, Pre::NormSilu(&s2, &t2), Some(&skip))
-            }
-            None => self.conv2.run(&h, Pre::NormSilu(&s2, &t2), Some(x)),
+            Some(proj) => self.conv2.after_norm(&self.norm2, &h, Some(&proj.run_with(x, Pre::Copy, None, false))),
+            None => self.conv2.after_norm(&self.norm2, &h, Some(x)),
         }
+    }
+}
+
+impl ConvW {
+    /// `norm` + SiLU, then this convolution (+ `skip`).
+    fn after_norm(&self, norm: &NormW, x: &Act, skip: Option<&Act>) -> Act {
+        let (scale, shift) = norm.affine(x);
+        self.run(x, Pre::NormSilu(&scale, &shift), skip)
     }
 }
 
@@ -625,6 +609,17 @@ impl ResW {
 struct Level {
     blocks: Vec<ResW>,
     resample: Option<ConvW>,
+}
+
+impl Level {
+    /// The blocks, then the resampling convolution after `pre` (a copy down, x2 up).
+    fn run(&self, x: Act, pre: Pre<'_>) -> Act {
+        let a = self.blocks.iter().fold(x, |a, b| b.run(&a));
+        match &self.resample {
+            Some(conv) => conv.run(&a, pre, None),
+            None => a,
+        }
+    }
 }
 
 fn mid(m: &Mid) -> Result<[ResW; 2], ModelError> {
@@ -743,18 +738,10 @@ impl NhwcNet {
             None => self.stem.run(&x, Pre::Copy, None),
         };
         for level in &self.down {
-            for b in &level.blocks {
-                a = b.run(&a);
-            }
-            if let Some(ds) = &level.resample {
-                a = ds.run(&a, Pre::Copy, None);
-            }
+            a = level.run(a, Pre::Copy);
         }
-        for b in &self.enc_mid {
-            a = b.run(&a);
-        }
-        let (s, t) = self.enc_norm_out.affine(&a);
-        Ok(self.enc_conv_out.run(&a, Pre::NormSilu(&s, &t), None))
+        let a = self.enc_mid.iter().fold(a, |a, b| b.run(&a));
+        Ok(self.enc_conv_out.after_norm(&self.enc_norm_out, &a, None))
     }
 
     /// The code head's logits of [`Self::features`], negated (`[h * w, n_embed]` row-major as
@@ -802,20 +789,12 @@ impl NhwcNet {
             data.extend_from_slice(&self.codebook[c * d..(c + 1) * d]);
         }
         let z = Act { h, w, c: d, data, sums: None };
-        let mut a = self.dec_conv_in.run(&self.post_quant.run(&z, Pre::Copy, None), Pre::Copy, None);
-        for b in &self.dec_mid {
-            a = b.run(&a);
-        }
+        let a = self.dec_conv_in.run(&self.post_quant.run(&z, Pre::Copy, None), Pre::Copy, None);
+        let mut a = self.dec_mid.iter().fold(a, |a, b| b.run(&a));
         for level in &self.up {
-            for b in &level.blocks {
-                a = b.run(&a);
-            }
-            if let Some(us) = &level.resample {
-                a = us.run(&a, Pre::Up2, None);
-            }
+            a = level.run(a, Pre::Up2);
         }
-        let (s, t) = self.dec_norm_out.affine(&a);
-        let out = self.dec_conv_out.run(&a, Pre::NormSilu(&s, &t), None);
+        let out = self.dec_conv_out.after_norm(&self.dec_norm_out, &a, None);
         Ok(pixel_shuffle_planes(&out, self.patch))
     }
 }
@@ -854,22 +833,26 @@ mod tests {
         a.iter().map(|x| x.abs()).fold(0.0, f32::max).max(1e-6)
     }
 
-    /// A model with every weight moved off its initial value (norms' scales and shifts too, and
-    /// a codebook spread like a trained one's), so no term of the pass is an identity.
-    fn model(config: &ModelConfig) -> VqModel {
-        let device = crate::default_device();
-        let m = VqModel::new(config, 3, &device).expect("model");
-        let mut tensors = crate::params::named_tensors(&m);
+    /// `module` with every parameter moved off its initial value by up to `spread(name)` (a
+    /// deterministic hash per value), so no term of a pass is an identity or zero.
+    pub(super) fn perturbed<M: burn::module::Module>(module: M, spread: impl Fn(&str) -> f32) -> M {
+        let mut tensors = crate::params::named_tensors(&module);
         for (i, (name, t)) in tensors.iter_mut().enumerate() {
-            let spread = if name.contains("embedding") { 1.0 } else { 0.2 };
+            let spread = spread(name);
             for (j, v) in t.values.iter_mut().enumerate() {
-                // a cheap deterministic hash in [-1, 1)
                 let u =
                     (((i * 7919 + j) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 40) as f32 / (1u64 << 24) as f32;
                 *v += spread * (2.0 * u - 1.0);
             }
         }
-        crate::params::load_named(m, &tensors, false, false).expect("perturbed weights")
+        crate::params::load_named(module, &tensors, false, false).expect("perturbed weights")
+    }
+
+    /// A model with every weight moved (norms' scales and shifts too, and a codebook spread like
+    /// a trained one's).
+    fn model(config: &ModelConfig) -> VqModel {
+        let m = VqModel::new(config, 3, &crate::default_device()).expect("model");
+        perturbed(m, |name| if name.contains("embedding") { 1.0 } else { 0.2 })
     }
 
     fn configs() -> Vec<ModelConfig> {
@@ -970,8 +953,10 @@ mod tests {
     fn layouts_round_trip() {
         let v: Vec<f32> = (0..2 * 3 * 4).map(|i| i as f32).collect();
         let a = Act::from_nchw(&v, 2, 3, 4);
-        assert_eq!(a.data[1], 12.0); // pixel 0, channel 1
-        assert_eq!(a.to_nchw(), v);
+        // pixel (y, x), channel ch holds plane ch's value at (y, x)
+        for (p, px) in a.data.chunks_exact(2).enumerate() {
+            assert_eq!(px, [v[p], v[12 + p]], "pixel {p}");
+        }
         // pixel shuffle: channel (c, i, j) of pixel (y, x) lands at (y r + i, x r + j)
         let a = Act { h: 1, w: 1, c: 4, data: vec![1.0, 2.0, 3.0, 4.0], sums: None };
         assert_eq!(pixel_shuffle_planes(&a, 2), vec![1.0, 2.0, 3.0, 4.0]);

@@ -638,12 +638,13 @@ impl VqRefiner {
         let sampling = self.effective_sampling();
         let k = self.config.n_embed;
         let z = self.config.z_channels;
-        // the head's logits negated: lower is likelier
-        // the encoder's features per cell: host rows for the CPU kernels, else a burn tensor
-        enum Features {
-            Host(Vec<f32>),
+        // the encoder's features per cell: host rows with the CPU kernels that take them, else a
+        // burn tensor; and the head's logits, negated (lower is likelier)
+        enum Features<'a> {
+            Host(Vec<f32>, &'a NhwcNet),
             Burn(Box<Tensor<2>>),
         }
+        // (the field, not `cpu_net()`: `self.rng` is borrowed mutably while this is held)
         let cpu = self.nhwc.as_ref().filter(|_| self.use_nhwc);
         let (feats, neg_head) = match cpu {
             Some(net) => {
@@ -651,7 +652,7 @@ impl VqRefiner {
                 let Some(logits) = net.neg_logits(&feats) else {
                     return Err(ModelError::MissingPart { part: "a code head", operation: "context sampling" });
                 };
-                (Features::Host(feats.data), logits.data)
+                (Features::Host(feats.data, net), logits.data)
             }
             None => {
                 let x = pack_input(&[work], &[Some(mask)], &[*intrinsics], &self.config, &self.device)?;
@@ -673,9 +674,10 @@ impl VqRefiner {
             let window_cells: Vec<usize> =
                 (wy0..wy0 + wh).flat_map(|y| (wx0..wx0 + ww).map(move |x| y * cw + x)).collect();
             let win_feats = match &feats {
-                Features::Host(all) => {
-                    Features::Host(window_cells.iter().flat_map(|&i| all[i * z..(i + 1) * z].iter().copied()).collect())
-                }
+                Features::Host(all, net) => Features::Host(
+                    window_cells.iter().flat_map(|&i| all[i * z..(i + 1) * z].iter().copied()).collect(),
+                    net,
+                ),
                 Features::Burn(all) => {
                     let idx = Tensor::<1, Int>::from_data(
                         TensorData::new(
@@ -699,7 +701,7 @@ impl VqRefiner {
                 let open = core_open(&states);
                 let win_states: Vec<CellState> = window_cells.iter().map(|&i| states[i]).collect();
                 let residual = match &win_feats {
-                    Features::Host(f) => match cpu.and_then(|net| net.context_residual(f, &win_states, [wh, ww])) {
+                    Features::Host(f, net) => match net.context_residual(f, &win_states, [wh, ww]) {
                         Some(r) => r?,
                         None => {
                             return Err(ModelError::MissingPart {

@@ -328,18 +328,9 @@ mod tests {
         let device = crate::default_device();
         let cfg = ContextConfig { dim: 32, layers: 2, heads: 4, mlp_ratio: 2, window_cells: 8, margin_cells: 2 };
         let (z, e, k) = (16, 8, 48);
-        let ctx = CodeContext::new(&cfg, z, e, k, &device);
-        // every weight random (a fresh context's output projection is zero)
-        let mut tensors = crate::params::named_tensors(&ctx);
-        for (i, (name, t)) in tensors.iter_mut().enumerate() {
-            let spread = if name.contains("norm") { 0.3 } else { 0.4 };
-            for (j, v) in t.values.iter_mut().enumerate() {
-                let u =
-                    (((i * 7919 + j) as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 40) as f32 / (1u64 << 24) as f32;
-                *v += spread * (2.0 * u - 1.0);
-            }
-        }
-        let ctx = crate::params::load_named(ctx, &tensors, false, false).expect("weights");
+        // every weight moved (a fresh context's output projection is zero)
+        let spread = |name: &str| if name.contains("norm") { 0.3 } else { 0.4 };
+        let ctx = super::super::tests::perturbed(CodeContext::new(&cfg, z, e, k, &device), spread);
         let cpu = CpuContext::new(&ctx, cfg.heads).expect("cpu");
         let codebook = Tensor::<2>::random([k, e], Distribution::Uniform(-1.0, 1.0), &device);
         let host_codebook = to_host(codebook.clone()).expect("host");
