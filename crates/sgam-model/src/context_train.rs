@@ -34,6 +34,7 @@ use crate::config::ModelConfig;
 use crate::context::{CellState, CodeContext, ContextInput};
 use crate::generative::{codebook_spacing, CodePair};
 use crate::model::VqModel;
+use crate::nhwc::train::{HostBatch, HostContext};
 use crate::packing::{missing_cells, pack_input};
 use crate::params::{load_named, named_tensors, to_safetensors_bytes, write_atomic, NamedTensor, WeightPrecision};
 use crate::quantize::{squared_distances, to_host};
@@ -189,9 +190,15 @@ struct ContextState {
     rng_seed: [u8; 32],
     rng_stream: u64,
     rng_word_pos: u128,
+    /// Adam steps behind the kernels' moments (`optim.safetensors`); absent in burn's.
+    #[serde(default)]
+    adam_steps: Option<u64>,
 }
 
 const STATE_VERSION: u32 = 1;
+
+/// The kernels' Adam moments in a checkpoint folder.
+const OPTIM_MOMENTS: &str = "optim.safetensors";
 
 /// A context training session.
 pub struct ContextTrainer {
@@ -199,15 +206,14 @@ pub struct ContextTrainer {
     pub model_config: ModelConfig,
     /// Hyper-parameters.
     pub train_config: ContextTrainConfig,
-    /// The trained part.
-    pub context: CodeContext,
+    /// The trained part, and what trains it.
+    engine: Engine,
     /// Frozen weights of everything else (saved with the context).
     base: BTreeMap<String, NamedTensor>,
     head_weight: Vec<f32>,
     head_bias: Vec<f32>,
     codebook: Vec<f32>,
     spacing: f32,
-    optim: ModuleOptimizer,
     /// Completed steps.
     pub step: u64,
     /// Batch and reveal RNG.
@@ -217,8 +223,31 @@ pub struct ContextTrainer {
 
 impl std::fmt::Debug for ContextTrainer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("ContextTrainer").field("step", &self.step).field("config", &self.train_config).finish()
+        f.debug_struct("ContextTrainer")
+            .field("step", &self.step)
+            .field("config", &self.train_config)
+            .field("engine", &self.engine())
+            .finish()
     }
+}
+
+/// What computes a context training step's gradients.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ContextEngine {
+    /// The model's own CPU kernels, gradients written out by hand ([`crate::nhwc`]; about 2.5x
+    /// burn's autodiff on this project's 2-core machine). The default of CPU builds.
+    #[cfg_attr(not(feature = "wgpu"), default)]
+    Kernels,
+    /// burn's autodiff on the crate's default device (the GPU in a `wgpu` build).
+    #[cfg_attr(feature = "wgpu", default)]
+    Burn,
+}
+
+// one trainer per process: the variants' sizes do not matter
+#[allow(clippy::large_enum_variant)]
+enum Engine {
+    Burn { context: CodeContext, optim: ModuleOptimizer },
+    Kernels(Box<HostContext>),
 }
 
 fn adam() -> ModuleOptimizer {
@@ -245,6 +274,38 @@ pub fn draw_states(pair: &ContextPair, whole_hole: f32, rng: &mut ChaCha8Rng) ->
     states
 }
 
+/// Soft targets `[m, K]` around `targets`: a softmax of minus the squared codebook distances
+/// over `width` (the smoothing in codebook spacings times the spacing).
+fn soft_targets(codebook: &[f32], [k, e]: [usize; 2], width: f32, targets: &[u32], dev: &Device) -> Tensor<2> {
+    let codebook = Tensor::<2>::from_data(TensorData::new(codebook.to_vec(), [k, e]), dev);
+    let idx = Tensor::<1, Int>::from_data(
+        TensorData::new(targets.iter().map(|&c| c as i64).collect::<Vec<_>>(), [targets.len()]),
+        dev,
+    );
+    let rows = codebook.clone().select(0, idx);
+    softmax(squared_distances(rows, codebook).neg().mul_scalar(1.0 / width), 1)
+}
+
+/// A batch for the kernels: features, states and target codes of every cell, and `[b, h, w]`.
+#[allow(clippy::type_complexity)]
+fn host_batch(
+    batch: &[&ContextPair],
+    states: &[Vec<CellState>],
+) -> Result<(Vec<f32>, Vec<CellState>, Vec<u32>, [usize; 3]), ModelError> {
+    let [h, w] = batch.first().map(|p| p.shape).ok_or(ModelError::EmptyBatch("context batch"))?;
+    if batch.iter().any(|p| p.shape != [h, w] || p.codes.len() != h * w) {
+        return Err(ModelError::shape(
+            "the pairs of one batch",
+            format!("{h}x{w} cells each"),
+            "pairs of several sizes",
+        ));
+    }
+    let features = batch.iter().flat_map(|p| p.features.iter().copied()).collect();
+    let states = states.iter().flatten().copied().collect();
+    let codes = batch.iter().flat_map(|p| p.codes.iter().copied()).collect();
+    Ok((features, states, codes, [batch.len(), h, w]))
+}
+
 impl ContextTrainer {
     /// A new session: `init` holds a generative model with a code head (its context, when
     /// present, warm-starts this one; else the context starts fresh, adding nothing);
@@ -253,6 +314,16 @@ impl ContextTrainer {
         model_config: &ModelConfig,
         init: &BTreeMap<String, NamedTensor>,
         train_config: &ContextTrainConfig,
+    ) -> Result<Self, ModelError> {
+        Self::new_on(model_config, init, train_config, ContextEngine::default())
+    }
+
+    /// [`Self::new`] with the gradients computed by `engine`.
+    pub fn new_on(
+        model_config: &ModelConfig,
+        init: &BTreeMap<String, NamedTensor>,
+        train_config: &ContextTrainConfig,
+        engine: ContextEngine,
     ) -> Result<Self, ModelError> {
         if model_config.context.is_none() || !model_config.code_head {
             return Err(ModelError::MissingPart { part: "a code head and a context", operation: "context training" });
@@ -278,36 +349,54 @@ impl ContextTrainer {
             (get("code_head.weight")?, get("code_head.bias")?, get("quantize.embedding.weight")?);
         let spacing = codebook_spacing(&model)?;
         let context =
-            model.context.ok_or(ModelError::MissingPart { part: "a context", operation: "context training" })?.train();
+            model.context.ok_or(ModelError::MissingPart { part: "a context", operation: "context training" })?;
+        let engine = match engine {
+            ContextEngine::Burn => Engine::Burn { context: context.train(), optim: adam() },
+            ContextEngine::Kernels => {
+                let cfg = model_config
+                    .context
+                    .as_ref()
+                    .ok_or(ModelError::MissingPart { part: "a context", operation: "context training" })?;
+                Engine::Kernels(Box::new(HostContext::new(
+                    cfg,
+                    &named_tensors(&context),
+                    head_weight.clone(),
+                    head_bias.clone(),
+                    codebook.clone(),
+                    model_config.z_channels,
+                    train_config.target_smoothing,
+                    spacing,
+                )?))
+            }
+        };
         Ok(Self {
             model_config: model_config.clone(),
             train_config: train_config.clone(),
-            context,
+            engine,
             base,
             head_weight,
             head_bias,
             codebook,
             spacing,
-            optim: adam(),
             step: 0,
             rng: ChaCha8Rng::seed_from_u64(train_config.seed),
             device,
         })
     }
 
-    fn constant(&self, values: &[f32], shape: [usize; 2], dev: &Device) -> Tensor<2> {
-        Tensor::from_data(TensorData::new(values.to_vec(), shape), dev)
-    }
-
     /// Head and total log-probabilities of the open cells `[m, K]`, and their targets.
-    fn forward(
-        &self,
+    fn forward_with(
+        config: &ModelConfig,
+        (head_weight, head_bias, codebook): (&[f32], &[f32], &[f32]),
         context: &CodeContext,
         batch: &[&ContextPair],
         states: &[Vec<CellState>],
         dev: &Device,
     ) -> Result<(Tensor<2>, Tensor<2>, Vec<u32>), ModelError> {
-        let (k, z, e) = (self.model_config.n_embed, self.model_config.z_channels, self.model_config.embed_dim);
+        let constant = |values: &[f32], shape: [usize; 2], dev: &Device| -> Tensor<2> {
+            Tensor::from_data(TensorData::new(values.to_vec(), shape), dev)
+        };
+        let (k, z, e) = (config.n_embed, config.z_channels, config.embed_dim);
         let [h, w] = batch[0].shape;
         if batch.iter().any(|p| p.shape != [h, w]) {
             return Err(ModelError::shape(
@@ -325,9 +414,9 @@ impl ContextTrainer {
                 format!("{} values", feats.len()),
             ));
         }
-        let feats = self.constant(&feats, [n, z], dev);
+        let feats = constant(&feats, [n, z], dev);
         let all_states: Vec<CellState> = states.iter().flatten().copied().collect();
-        let codebook = self.constant(&self.codebook, [k, e], dev);
+        let codebook = constant(codebook, [k, e], dev);
         let input = ContextInput::new(feats.clone(), &all_states, &codebook, [batch.len(), h, w]);
         let open: Vec<usize> = (0..n).filter(|&i| all_states[i] == CellState::Open).collect();
         let targets: Vec<u32> = open.iter().map(|&i| batch[i / (h * w)].codes[i % (h * w)]).collect();
@@ -335,25 +424,12 @@ impl ContextTrainer {
             TensorData::new(open.iter().map(|&i| i as i64).collect::<Vec<_>>(), [open.len()]),
             dev,
         );
-        let head_w = self.constant(&self.head_weight, [k, z], dev);
-        let head_b = self.constant(&self.head_bias, [1, k], dev);
+        let head_w = constant(head_weight, [k, z], dev);
+        let head_b = constant(head_bias, [1, k], dev);
         let head = feats.select(0, idx.clone()).matmul(head_w.transpose()) + head_b;
         let residual = context.out.forward(context.tokens(input).select(0, idx));
         let total = log_softmax(head.clone() + residual, 1);
         Ok((log_softmax(head, 1), total, targets))
-    }
-
-    /// Soft targets `[m, K]` around `targets`.
-    fn soft_targets(&self, targets: &[u32], dev: &Device) -> Tensor<2> {
-        let (k, e) = (self.model_config.n_embed, self.model_config.embed_dim);
-        let codebook = self.constant(&self.codebook, [k, e], dev);
-        let idx = Tensor::<1, Int>::from_data(
-            TensorData::new(targets.iter().map(|&c| c as i64).collect::<Vec<_>>(), [targets.len()]),
-            dev,
-        );
-        let rows = codebook.clone().select(0, idx);
-        let scale = 1.0 / (self.train_config.target_smoothing.max(1e-6) * self.spacing);
-        softmax(squared_distances(rows, codebook).neg().mul_scalar(scale), 1)
     }
 
     fn report(head: &[f32], total: &[f32], targets: &[u32], k: usize) -> ContextReport {
@@ -372,6 +448,14 @@ impl ContextTrainer {
         r
     }
 
+    /// What computes this trainer's gradients.
+    pub fn engine(&self) -> ContextEngine {
+        match self.engine {
+            Engine::Burn { .. } => ContextEngine::Burn,
+            Engine::Kernels(_) => ContextEngine::Kernels,
+        }
+    }
+
     /// One optimisation step on `batch` (pairs of one size).
     pub fn step_on(&mut self, batch: &[&ContextPair]) -> Result<ContextReport, ModelError> {
         if batch.is_empty() {
@@ -379,28 +463,57 @@ impl ContextTrainer {
         }
         let whole = self.train_config.whole_hole;
         let states: Vec<Vec<CellState>> = batch.iter().map(|p| draw_states(p, whole, &mut self.rng)).collect();
-        let dev = self.device.clone().autodiff();
-        let (head, total, targets) = self.forward(&self.context, batch, &states, &dev)?;
-        let loss = if self.train_config.target_smoothing > 0.0 {
-            (self.soft_targets(&targets, &dev) * total.clone()).sum_dim(1).mean().neg()
-        } else {
-            let idx = Tensor::<2, Int>::from_data(
-                TensorData::new(targets.iter().map(|&c| c as i64).collect::<Vec<_>>(), [targets.len(), 1]),
-                &dev,
-            );
-            total.clone().gather(1, idx).mean().neg()
-        };
-        let loss_value = to_host(loss.clone().detach())?.first().copied().unwrap_or(f32::NAN);
-        if !loss_value.is_finite() {
-            return Err(ModelError::Diverged { loss: loss_value, step: self.step + 1 });
-        }
-        let mut grads = loss.backward();
-        let g = GradientsParams::from_module(&mut grads, &self.context);
         let lr = self.train_config.lr_at(self.step);
-        self.context = self.optim.step(lr, self.context.clone(), g);
+        let mut r = match &mut self.engine {
+            Engine::Kernels(host) => {
+                let (features, states, targets, shape) = host_batch(batch, &states)?;
+                let r =
+                    host.train_step(&HostBatch { features: &features, states: &states, targets: &targets, shape }, lr)?;
+                if !r.loss.is_finite() {
+                    return Err(ModelError::Diverged { loss: r.loss, step: self.step + 1 });
+                }
+                ContextReport { step: 0, ce: r.ce, acc: r.acc, open_cells: r.open, ce_head: r.ce_head }
+            }
+            Engine::Burn { context, optim } => {
+                let dev = self.device.clone().autodiff();
+                let (head, total, targets) = Self::forward_with(
+                    &self.model_config,
+                    (&self.head_weight, &self.head_bias, &self.codebook),
+                    context,
+                    batch,
+                    &states,
+                    &dev,
+                )?;
+                let loss = if self.train_config.target_smoothing > 0.0 {
+                    (soft_targets(
+                        &self.codebook,
+                        [self.model_config.n_embed, self.model_config.embed_dim],
+                        self.train_config.target_smoothing.max(1e-6) * self.spacing,
+                        &targets,
+                        &dev,
+                    ) * total.clone())
+                    .sum_dim(1)
+                    .mean()
+                    .neg()
+                } else {
+                    let idx = Tensor::<2, Int>::from_data(
+                        TensorData::new(targets.iter().map(|&c| c as i64).collect::<Vec<_>>(), [targets.len(), 1]),
+                        &dev,
+                    );
+                    total.clone().gather(1, idx).mean().neg()
+                };
+                let loss_value = to_host(loss.clone().detach())?.first().copied().unwrap_or(f32::NAN);
+                if !loss_value.is_finite() {
+                    return Err(ModelError::Diverged { loss: loss_value, step: self.step + 1 });
+                }
+                let mut grads = loss.backward();
+                let g = GradientsParams::from_module(&mut grads, &*context);
+                *context = optim.step(lr, context.clone(), g);
+                let k = self.model_config.n_embed;
+                Self::report(&to_host(head.detach())?, &to_host(total.detach())?, &targets, k)
+            }
+        };
         self.step += 1;
-        let k = self.model_config.n_embed;
-        let mut r = Self::report(&to_host(head.detach())?, &to_host(total.detach())?, &targets, k);
         r.step = self.step;
         Ok(r)
     }
@@ -408,24 +521,59 @@ impl ContextTrainer {
     /// Cross-entropy on held-out pairs with a fixed draw of states (`whole_hole` = 1: nothing
     /// revealed, the first pass; 0: MaskGIT's reveal schedule).
     pub fn evaluate(&self, pairs: &[ContextPair], whole_hole: f32, batch: usize) -> Result<ContextReport, ModelError> {
-        let context = self.context.valid();
         let mut rng = ChaCha8Rng::seed_from_u64(0x0c0_7e47);
         let k = self.model_config.n_embed;
         let (mut head, mut total, mut targets) = (Vec::new(), Vec::new(), Vec::new());
+        let mut sums = ContextReport::default();
         let mut by_size: BTreeMap<[usize; 2], Vec<&ContextPair>> = BTreeMap::new();
         for p in pairs {
             by_size.entry(p.shape).or_default().push(p);
         }
+        let burn = match &self.engine {
+            Engine::Burn { context, .. } => Some(context.valid()),
+            Engine::Kernels(_) => None,
+        };
         for group in by_size.values() {
             for chunk in group.chunks(batch.max(1)) {
                 let states: Vec<Vec<CellState>> = chunk.iter().map(|p| draw_states(p, whole_hole, &mut rng)).collect();
-                let (h, t, c) = self.forward(&context, chunk, &states, &self.device)?;
-                head.extend(to_host(h)?);
-                total.extend(to_host(t)?);
-                targets.extend(c);
+                match (&self.engine, &burn) {
+                    (Engine::Kernels(host), _) => {
+                        let (features, states, codes, shape) = host_batch(chunk, &states)?;
+                        let r = host.forward_only(&HostBatch {
+                            features: &features,
+                            states: &states,
+                            targets: &codes,
+                            shape,
+                        })?;
+                        let m = r.open as f32;
+                        sums.ce += r.ce * m;
+                        sums.ce_head += r.ce_head * m;
+                        sums.acc += r.acc * m;
+                        sums.open_cells += r.open;
+                    }
+                    (Engine::Burn { .. }, Some(context)) => {
+                        let (h, t, c) = Self::forward_with(
+                            &self.model_config,
+                            (&self.head_weight, &self.head_bias, &self.codebook),
+                            context,
+                            chunk,
+                            &states,
+                            &self.device,
+                        )?;
+                        head.extend(to_host(h)?);
+                        total.extend(to_host(t)?);
+                        targets.extend(c);
+                    }
+                    (Engine::Burn { .. }, None) => unreachable!("burn's context is taken above"),
+                }
             }
         }
-        let mut r = Self::report(&head, &total, &targets, k);
+        let mut r = if burn.is_some() {
+            Self::report(&head, &total, &targets, k)
+        } else {
+            let m = sums.open_cells.max(1) as f32;
+            ContextReport { ce: sums.ce / m, ce_head: sums.ce_head / m, acc: sums.acc / m, ..sums }
+        };
         r.step = self.step;
         Ok(r)
     }
@@ -433,18 +581,32 @@ impl ContextTrainer {
     /// The whole model's weights: the frozen parts and the current context.
     pub fn weights(&self) -> BTreeMap<String, NamedTensor> {
         let mut all = self.base.clone();
-        for (name, t) in named_tensors(&self.context.valid()) {
+        let context = match &self.engine {
+            Engine::Burn { context, .. } => named_tensors(&context.valid()),
+            Engine::Kernels(host) => host.named(),
+        };
+        for (name, t) in context {
             all.insert(format!("context.{name}"), t);
         }
         all
     }
 
-    /// Commits `run_dir/ckpt` (weights, optimizer, state) atomically.
+    /// Commits `run_dir/ckpt` (weights, optimizer, state) atomically. The optimizer's state is
+    /// `optim.bpk` (burn's record) or `optim.safetensors` (the kernels' Adam moments).
     pub fn save(&self, run_dir: &Path) -> Result<(), ModelError> {
         let weights = self.weights();
         let meta = crate::refiner::weight_metadata(&self.model_config)?;
         let bytes = to_safetensors_bytes(&weights, WeightPrecision::F32, Some(meta))?;
-        let optim = self.optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?;
+        let (optim_name, optim, adam_steps) = match &self.engine {
+            Engine::Burn { optim, .. } => {
+                ("optim.bpk", optim.into_bytes().map_err(|e| ModelError::state("optimizer", e))?.to_vec(), None)
+            }
+            Engine::Kernels(host) => (
+                OPTIM_MOMENTS,
+                to_safetensors_bytes(&host.moments(), WeightPrecision::F32, None)?,
+                Some(host.adam_steps),
+            ),
+        };
         let (rng_seed, rng_stream, rng_word_pos) = crate::checkpoint::rng_position(&self.rng);
         let state = ContextState {
             version: STATE_VERSION,
@@ -454,11 +616,12 @@ impl ContextTrainer {
             rng_seed,
             rng_stream,
             rng_word_pos,
+            adam_steps,
         };
         let json = serde_json::to_vec_pretty(&state).map_err(|e| ModelError::state("state", e))?;
         commit_folder(run_dir, "ckpt", |dir| {
             write_atomic(&dir.join("model.safetensors"), &bytes)?;
-            write_atomic(&dir.join("optim.bpk"), &optim)?;
+            write_atomic(&dir.join(optim_name), &optim)?;
             write_atomic(&dir.join("state.json"), &json)
         })?;
         Ok(())
@@ -472,6 +635,18 @@ impl ContextTrainer {
     /// Resumes from `run_dir`'s checkpoint (manifest verified); `steps` and `lr_decay_from`
     /// override the stored values when given.
     pub fn resume(run_dir: &Path, steps: Option<u64>, lr_decay_from: Option<u64>) -> Result<Self, ModelError> {
+        Self::resume_on(run_dir, steps, lr_decay_from, ContextEngine::default())
+    }
+
+    /// [`Self::resume`] with the gradients computed by `engine`. A checkpoint written by the
+    /// other engine resumes its weights, step and batch order with a fresh optimizer (the two
+    /// keep Adam's moments in different files).
+    pub fn resume_on(
+        run_dir: &Path,
+        steps: Option<u64>,
+        lr_decay_from: Option<u64>,
+        engine: ContextEngine,
+    ) -> Result<Self, ModelError> {
         let dir = committed_folder(run_dir, "ckpt")
             .ok_or_else(|| ModelError::checkpoint(run_dir, "no committed checkpoint (ckpt/ with a manifest)"))?;
         verify_folder(&dir)?;
@@ -484,9 +659,23 @@ impl ContextTrainer {
         if lr_decay_from.is_some() {
             train_config.lr_decay_from = lr_decay_from;
         }
-        let mut t = Self::new(&state.model_config, &tensors, &train_config)?;
-        let optim = dir.join("optim.bpk");
-        t.optim = crate::train::load_optimizer(&optim, |p| adam().load(p))?;
+        let mut t = Self::new_on(&state.model_config, &tensors, &train_config, engine)?;
+        match &mut t.engine {
+            Engine::Burn { optim, .. } => {
+                let path = dir.join("optim.bpk");
+                if path.exists() {
+                    *optim = crate::train::load_optimizer(&path, |p| adam().load(p))?;
+                }
+            }
+            Engine::Kernels(host) => {
+                let path = dir.join(OPTIM_MOMENTS);
+                if path.exists() {
+                    let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
+                    let moments = crate::params::from_safetensors_bytes(&bytes).map_err(|e| e.in_file(&path))?.0;
+                    host.set_moments(&moments, state.adam_steps.unwrap_or(state.step)).map_err(|e| e.in_file(&path))?;
+                }
+            }
+        }
         t.step = state.step;
         t.rng = crate::checkpoint::rng_at(state.rng_seed, state.rng_stream, state.rng_word_pos);
         Ok(t)

@@ -31,6 +31,7 @@ use crate::quantize::to_host;
 use crate::ModelError;
 
 mod context;
+pub(crate) mod train;
 
 /// Lanes of one vector of output channels.
 const LANES: usize = 16;
@@ -435,6 +436,19 @@ impl ConvW {
             for (v, vec) in vecs.iter().enumerate() {
                 let c0 = (v0 + v) * LANES;
                 let n = LANES.min(cout - c0);
+                if n == LANES {
+                    // a whole vector: a fixed-size store, not a call to memmove
+                    let lanes = match skip {
+                        Some(sk) => {
+                            let mut s = [0.0f32; LANES];
+                            s.copy_from_slice(&sk[base + c0..][..LANES]);
+                            (*vec + f32x16::new(s)).to_array()
+                        }
+                        None => vec.to_array(),
+                    };
+                    orow[base + c0..][..LANES].copy_from_slice(&lanes);
+                    continue;
+                }
                 let lanes = vec.to_array();
                 let dst = &mut orow[base + c0..base + c0 + n];
                 match skip {

@@ -6,7 +6,7 @@ use rand_chacha::ChaCha8Rng;
 use sgam_core::{Intrinsics, RgbdFrame};
 use sgam_model::burn::tensor::{Tensor, TensorData};
 use sgam_model::context::{CellState, ContextConfig, ContextInput};
-use sgam_model::context_train::{draw_states, ContextPair, ContextTrainConfig, ContextTrainer};
+use sgam_model::context_train::{draw_states, ContextEngine, ContextPair, ContextTrainConfig, ContextTrainer};
 use sgam_model::params::named_tensors;
 use sgam_model::refiner::context_windows;
 use sgam_model::{ModelConfig, RefinerOptions, Sampling, VqModel, VqRefiner};
@@ -168,6 +168,60 @@ fn training_uses_revealed_cells_and_resumes_where_it_stopped() {
     std::fs::write(&weights, bytes).expect("write");
     let err = ContextTrainer::resume(dir.path(), None, None).expect_err("damaged").to_string();
     assert!(err.contains("model.safetensors"), "{err}");
+}
+
+#[test]
+fn the_kernels_train_as_burns_autodiff_does_and_resume_across_engines() {
+    let cfg = tiny_context_config();
+    let device = sgam_model::default_device();
+    let init = named_tensors(&VqModel::new(&ModelConfig { context: None, ..cfg.clone() }, 2, &device).expect("model"));
+    // soft targets (the default), a decaying learning rate
+    let tc = ContextTrainConfig {
+        steps: 30,
+        batch: 8,
+        lr: 2e-3,
+        warmup: 5,
+        ckpt_every: 1000,
+        ..ContextTrainConfig::default()
+    };
+    let pairs = toy_pairs(&cfg, 64, 5);
+    let val = toy_pairs(&cfg, 32, 6);
+    let mut a = ContextTrainer::new_on(&cfg, &init, &tc, ContextEngine::Kernels).expect("kernels");
+    let mut b = ContextTrainer::new_on(&cfg, &init, &tc, ContextEngine::Burn).expect("burn");
+    assert_eq!((a.engine(), b.engine()), (ContextEngine::Kernels, ContextEngine::Burn));
+    let (va, vb) = (a.evaluate(&val, 0.0, 8).expect("eval"), b.evaluate(&val, 0.0, 8).expect("eval"));
+    assert_eq!(va.open_cells, vb.open_cells);
+    assert!((va.ce - vb.ce).abs() < 1e-4 && (va.ce_head - vb.ce_head).abs() < 1e-4, "{va:?} vs {vb:?}");
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    for step in 0..30 {
+        let batch: Vec<&ContextPair> = (0..8).map(|_| &pairs[rng.random_range(0..pairs.len())]).collect();
+        let (ra, rb) = (a.step_on(&batch).expect("step"), b.step_on(&batch).expect("step"));
+        assert_eq!((ra.step, ra.open_cells), (rb.step, rb.open_cells), "the same states drawn");
+        // Adam moves every weight by about the learning rate whatever the gradient's size, so
+        // the two drift apart by rounding; the losses stay together
+        assert!((ra.ce - rb.ce).abs() < 0.02 * rb.ce.max(1.0), "step {step}: CE {} against burn's {}", ra.ce, rb.ce);
+    }
+    let (va, vb) = (a.evaluate(&val, 0.0, 8).expect("eval"), b.evaluate(&val, 0.0, 8).expect("eval"));
+    assert!(va.ce < va.ce_head - 0.05, "the kernels learned nothing: {va:?}");
+    assert!((va.ce - vb.ce).abs() < 0.02 * vb.ce, "after 30 steps: {va:?} against burn's {vb:?}");
+    // each engine resumes the other's checkpoint: same weights and step, fresh optimizer
+    let dir = tempfile::tempdir().expect("tempdir");
+    a.save(dir.path()).expect("save");
+    assert!(dir.path().join("ckpt/optim.safetensors").exists());
+    let same = ContextTrainer::resume_on(dir.path(), None, None, ContextEngine::Kernels).expect("resume");
+    let other = ContextTrainer::resume_on(dir.path(), None, None, ContextEngine::Burn).expect("resume");
+    assert_eq!((same.step, other.step), (30, 30));
+    assert_eq!(same.weights(), a.weights());
+    let close = |x: &std::collections::BTreeMap<String, sgam_model::params::NamedTensor>| {
+        x.iter().all(|(k, t)| t.values.iter().zip(&a.weights()[k].values).all(|(p, q)| (p - q).abs() < 1e-6))
+    };
+    assert!(close(&other.weights()), "burn resumed other weights");
+    // the kernels' moments came back: the next steps equal the uninterrupted run's
+    let batch: Vec<&ContextPair> = (0..8).map(|i| &pairs[i]).collect();
+    let mut same = same;
+    let (r1, r2) = (a.step_on(&batch).expect("step"), same.step_on(&batch).expect("step"));
+    assert_eq!(r1, r2);
+    assert_eq!(a.weights(), same.weights());
 }
 
 #[test]

@@ -149,6 +149,81 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
 }
 
 #[test]
+fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("ctx");
+    let r = run.to_str().unwrap();
+    let args = |steps: &'static str| {
+        vec![
+            "train",
+            "context",
+            "--run",
+            r,
+            "--dim",
+            "16",
+            "--layers",
+            "1",
+            "--heads",
+            "2",
+            "--pairs",
+            "16",
+            "--val-pairs",
+            "4",
+            "--crop",
+            "32",
+            "--steps-per-run",
+            "2",
+            "--batch",
+            "4",
+            "--steps",
+            steps,
+            "--ckpt-every",
+            "2",
+            "--val-every",
+            "2",
+            "--scenes",
+            "3",
+        ]
+    };
+    let err = ok(&args("3"));
+    assert!(err.contains("gradients: the model's CPU kernels"), "{err}");
+    let ckpt = run.join("ckpt");
+    assert!(ckpt.join("optim.safetensors").exists() && !ckpt.join("optim.bpk").exists());
+    let state = |k: &str| -> serde_json::Value {
+        serde_json::from_slice::<serde_json::Value>(&std::fs::read(ckpt.join("state.json")).unwrap()).unwrap()[k]
+            .clone()
+    };
+    assert_eq!((state("step"), state("adam_steps")), (serde_json::json!(3), serde_json::json!(3)));
+    // burn's autodiff resumes the kernels' run (its weights, step and batch order; a fresh optimizer)
+    let mut a = args("5");
+    a.push("--burn-autodiff");
+    let err = ok(&a);
+    assert!(err.contains("resuming") && err.contains("burn's autodiff"), "{err}");
+    assert!(ckpt.join("optim.bpk").exists() && !ckpt.join("optim.safetensors").exists());
+    assert_eq!(state("step"), 5);
+    // and the kernels resume burn's
+    ok(&args("6"));
+    assert_eq!((state("step"), state("adam_steps")), (serde_json::json!(6), serde_json::json!(1)));
+    let log = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 6, "{log}");
+    for (k, line) in log.lines().enumerate() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(v["report"]["step"], k as u64 + 1, "{line}");
+        let ce = v["report"]["ce"].as_f64().unwrap();
+        assert!(ce.is_finite() && ce > 0.0, "{line}");
+    }
+    // validations at steps 0, 2, 4 and 6, each with the head's CE beside the context's
+    let val = std::fs::read_to_string(run.join("val.jsonl")).unwrap();
+    let steps: Vec<u64> =
+        val.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [0, 2, 4, 6], "{val}");
+    // the trained model exports
+    let out = tmp.path().join("m.safetensors");
+    ok(&["train", "export", run.join("ckpt/model.safetensors").to_str().unwrap(), out.to_str().unwrap()]);
+    assert!(std::fs::metadata(&out).unwrap().len() > 100_000);
+}
+
+#[test]
 fn fuse_rejects_bad_inputs_with_the_path() {
     let tmp = tempfile::tempdir().unwrap();
     let out = sgam(&["fuse", "/nonexistent/seq", "--out", tmp.path().join("m.ply").to_str().unwrap()]);

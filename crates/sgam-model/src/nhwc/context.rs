@@ -146,7 +146,7 @@ impl Block {
 }
 
 /// Softmax of each row of `m` (`[rows, n]`) in place.
-fn softmax_rows(m: &mut [f32], n: usize) {
+pub(super) fn softmax_rows(m: &mut [f32], n: usize) {
     m.chunks_mut(n).for_each(|row| {
         let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
         let mut chunks = row.chunks_exact_mut(LANES);
@@ -168,24 +168,28 @@ fn softmax_rows(m: &mut [f32], n: usize) {
     });
 }
 
-/// Exact GELU, `x (1 + erf(x / sqrt 2)) / 2`, in place; erf by Abramowitz & Stegun 7.1.26
-/// (absolute error below 1.5e-7).
-fn gelu(x: &mut [f32]) {
-    const P: f32 = 0.327_591_1;
-    const A: [f32; 5] = [0.254_829_6, -0.284_496_72, 1.421_413_8, -1.453_152, 1.061_405_4];
-    let erf16 = |v: f32x16| {
-        let z = v.abs();
-        let t = f32x16::ONE / (f32x16::ONE + f32x16::splat(P) * z);
-        let poly = ((((f32x16::splat(A[4]) * t + A[3]) * t + A[2]) * t + A[1]) * t + A[0]) * t;
-        let y = f32x16::ONE - poly * (-(z * z)).exp();
-        v.simd_lt(f32x16::ZERO).select(-y, y)
-    };
-    let erf1 = |v: f32| {
-        let z = v.abs();
-        let t = 1.0 / (1.0 + P * z);
-        let poly = ((((A[4] * t + A[3]) * t + A[2]) * t + A[1]) * t + A[0]) * t;
-        (1.0 - poly * (-(z * z)).exp()).copysign(v)
-    };
+/// erf by Abramowitz & Stegun 7.1.26 (absolute error below 1.5e-7), 16 lanes.
+pub(super) fn erf16(v: f32x16) -> f32x16 {
+    let z = v.abs();
+    let t = f32x16::ONE / (f32x16::ONE + f32x16::splat(ERF_P) * z);
+    let poly = ((((f32x16::splat(ERF_A[4]) * t + ERF_A[3]) * t + ERF_A[2]) * t + ERF_A[1]) * t + ERF_A[0]) * t;
+    let y = f32x16::ONE - poly * (-(z * z)).exp();
+    v.simd_lt(f32x16::ZERO).select(-y, y)
+}
+
+/// [`erf16`] for one value.
+pub(super) fn erf1(v: f32) -> f32 {
+    let z = v.abs();
+    let t = 1.0 / (1.0 + ERF_P * z);
+    let poly = ((((ERF_A[4] * t + ERF_A[3]) * t + ERF_A[2]) * t + ERF_A[1]) * t + ERF_A[0]) * t;
+    (1.0 - poly * (-(z * z)).exp()).copysign(v)
+}
+
+const ERF_P: f32 = 0.327_591_1;
+const ERF_A: [f32; 5] = [0.254_829_6, -0.284_496_72, 1.421_413_8, -1.453_152, 1.061_405_4];
+
+/// Exact GELU, `x (1 + erf(x / sqrt 2)) / 2`, in place ([`erf16`]).
+pub(super) fn gelu(x: &mut [f32]) {
     let r = std::f32::consts::FRAC_1_SQRT_2;
     x.chunks_mut(4096).for_each(|part| {
         let mut chunks = part.chunks_exact_mut(LANES);
