@@ -15,7 +15,8 @@
 //!
 //! Hand-written because no crate does this: burn (and candle) convolve through im2col + GEMM in
 //! NCHW, and the inference engines that keep NHWC (tract, ort) would need the model exported to
-//! ONNX and a second runtime. Inference only: training keeps burn's autodiff. Models with
+//! ONNX and a second runtime. The context transformer also trains here ([`train`]); the
+//! convolutional stages train through burn's autodiff. Models with
 //! attention (the `paper` preset) are not covered and keep burn's path. Checked against burn's
 //! forward pass in the tests below.
 
