@@ -55,6 +55,11 @@ pub struct ContextArgs {
     /// Steps of each recorded generator run.
     #[arg(long, default_value_t = 40)]
     pub steps_per_run: usize,
+    /// Take the recorded pairs of another run folder (recorded with the same --pairs,
+    /// --val-pairs, --crop, --scenes, --steps-per-run, --seed and --closed-loop) instead of
+    /// recording them: ablations on the same data, at once.
+    #[arg(long, value_name = "RUN")]
+    pub pairs_from: Option<PathBuf>,
     /// Share of the training pairs' generator runs (0-1) that grow their map with the starting
     /// model's own completions (generation's default sampling) instead of the truth: the
     /// guidance then holds the model's earlier inventions, as in generation, and the target is
@@ -191,6 +196,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             weights: &start_bytes,
             options: sgam_pipeline::settings::SamplingSettings::default().refiner_options(),
         }),
+        pairs_from: a.pairs_from.as_deref(),
     };
     let record = |n: usize, stream: u64, what: &str| -> Result<Vec<ContextPair>> {
         let pairs =

@@ -87,6 +87,11 @@ pub struct SamplerArgs {
     /// Steps per recorded generator run.
     #[arg(long, default_value_t = 40)]
     pub steps_per_run: usize,
+    /// Take the recorded pairs of another run folder (recorded with the same --pairs,
+    /// --val-pairs, --crop, --scenes, --steps-per-run and --seed) instead of recording them:
+    /// ablations on the same data, at once.
+    #[arg(long, value_name = "RUN")]
+    pub pairs_from: Option<PathBuf>,
     /// Loss weight of observed latent cells relative to missing ones.
     #[arg(long, default_value_t = 0.2)]
     pub observed_weight: f32,
@@ -108,6 +113,9 @@ pub(crate) struct PairSpec<'a> {
     pub seed: u64,
     /// Closed-loop recording of the training pairs (`sgam train context --closed-loop`).
     pub closed_loop: Option<sgam_pipeline::codepairs::ClosedLoop<'a>>,
+    /// Another run folder whose recorded pairs (same options) this run takes instead of
+    /// recording them (`--pairs-from`).
+    pub pairs_from: Option<&'a std::path::Path>,
 }
 
 /// `n` training pairs of stream `stream`, recorded from the generator with the oracle on
@@ -136,6 +144,25 @@ pub(crate) fn recorded_pairs(
         closed_loop: closed_loop.map_or(0.0, |c| c.share),
     };
     let path = spec.run.join(format!("pairs-{stream}.bin"));
+    if let (false, Some(dir)) = (path.exists(), spec.pairs_from) {
+        let src = dir.join(format!("pairs-{stream}.bin"));
+        if !src.is_file() {
+            bail!("{}: no recorded pairs there (--pairs-from names a run folder that recorded them)", src.display());
+        }
+        if sgam_pipeline::codepairs::read_cache(&src, &key)?.is_none() {
+            bail!(
+                "{}: recorded with other --pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / \
+                 --closed-loop; --pairs-from needs the options it was recorded with",
+                src.display()
+            );
+        }
+        // a hard link costs nothing; another file system gets a copy
+        if std::fs::hard_link(&src, &path).is_err() {
+            std::fs::copy(&src, &path)
+                .with_context(|| format!("{}: cannot copy the pairs of {}", path.display(), src.display()))?;
+        }
+        eprintln!("pairs taken from {} (--pairs-from)", src.display());
+    }
     if path.exists() {
         match sgam_pipeline::codepairs::read_cache(&path, &key)? {
             Some(p) => return Ok(p),
@@ -270,6 +297,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         scenes: a.common.scenes,
         seed: a.common.seed,
         closed_loop: None,
+        pairs_from: a.pairs_from.as_deref(),
     };
     let record = |n: usize, stream: u64, what: &str| {
         recorded_pairs(&spec, n, stream, what, (&target_model, &target_config), resuming)

@@ -217,6 +217,21 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     let steps: Vec<u64> =
         val.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["step"].as_u64().unwrap()).collect();
     assert_eq!(steps, [0, 2, 4, 6], "{val}");
+    // another run trains on the same pairs at once; pairs of other options are refused by name
+    let other = tmp.path().join("ctx-b");
+    let mut b: Vec<&str> = args("1").into_iter().map(|x| if x == r { other.to_str().unwrap() } else { x }).collect();
+    b.extend(["--pairs-from", r]);
+    let err = ok(&b);
+    assert!(err.contains("taken from") && !err.contains("recording"), "{err}");
+    assert_eq!(std::fs::read(other.join("pairs-1.bin")).unwrap(), std::fs::read(run.join("pairs-1.bin")).unwrap());
+    let third = tmp.path().join("ctx-c");
+    let mut c: Vec<&str> = args("1").into_iter().map(|x| if x == r { third.to_str().unwrap() } else { x }).collect();
+    let pos = c.iter().position(|x| *x == "--pairs").unwrap();
+    c[pos + 1] = "12";
+    c.extend(["--pairs-from", r]);
+    let out = sgam(&c);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("pairs-1.bin") && err.contains("--pairs-from"), "{err}");
     // the trained model exports
     let out = tmp.path().join("m.safetensors");
     ok(&["train", "export", run.join("ckpt/model.safetensors").to_str().unwrap(), out.to_str().unwrap()]);

@@ -117,8 +117,8 @@ struct BlockCache {
     n1: NormCache,
     a: Vec<f32>,
     qkv: Vec<f32>,
-    /// Softmax of every window's and head's scores, `[b][heads][n][n]`.
-    probs: Vec<f32>,
+    /// Softmax of every window's and head's scores: `[n][n]` per window and head, in that order.
+    probs: Vec<Vec<f32>>,
     att: Vec<f32>,
     n2: NormCache,
     c: Vec<f32>,
@@ -491,14 +491,14 @@ impl HostContext {
             })
             .collect();
         let mut att = vec![0.0f32; rows * d];
-        let mut probs = Vec::with_capacity(b * heads * n * n);
+        let mut probs = Vec::with_capacity(b * heads);
         for (wh, (pr, o)) in per.into_iter().enumerate() {
             let (win, head) = (wh / heads, wh % heads);
             for (i, r) in o.chunks_exact(dh).enumerate() {
                 let at = (win * n + i) * d + head * dh;
                 att[at..at + dh].copy_from_slice(r);
             }
-            probs.extend(pr);
+            probs.push(pr);
         }
         let mut x2 = self.dense_fwd(p.proj, &att, rows);
         add(&mut x2, &x1);
@@ -538,7 +538,7 @@ impl HostContext {
             .map(|wh| {
                 let (win, head) = (wh / heads, wh % heads);
                 let [q, kk, v] = head_slices(&c.qkv, win * n, n, d, head * dh, dh);
-                let probs = &c.probs[wh * n * n..(wh + 1) * n * n];
+                let probs = &c.probs[wh];
                 let d_o: Vec<f32> = (0..n)
                     .flat_map(|i| {
                         datt[(win * n + i) * d + head * dh..(win * n + i) * d + (head + 1) * dh].iter().copied()
