@@ -38,7 +38,14 @@ struct Recorded {
 struct Recorder {
     renderer: Arc<Renderer>,
     log: Arc<Mutex<Vec<Recorded>>>,
-    model: Option<sgam_model::VqRefiner>,
+    model: Option<ModelSteps>,
+}
+
+/// The model of a closed-loop run and the share of its steps it completes (the oracle the rest).
+struct ModelSteps {
+    refiner: sgam_model::VqRefiner,
+    share: f32,
+    rng: ChaCha8Rng,
 }
 
 impl Refiner for Recorder {
@@ -50,7 +57,15 @@ impl Refiner for Recorder {
             log.push(Recorded { guidance: guidance.clone(), truth: truth.clone() });
         }
         match &mut self.model {
-            Some(m) => m.refine(guidance),
+            // (a share of 1 draws nothing: runs recorded before the share existed stay as they were)
+            Some(m) if m.share >= 1.0 => m.refiner.refine(guidance),
+            Some(m) => {
+                if m.rng.random::<f32>() < m.share {
+                    m.refiner.refine(guidance)
+                } else {
+                    Ok(truth)
+                }
+            }
             None => Ok(truth),
         }
     }
@@ -65,6 +80,11 @@ impl Refiner for Recorder {
 pub struct ClosedLoop<'a> {
     /// Share of the runs (0-1) whose map grows with the model's completions.
     pub share: f32,
+    /// Share of such a run's steps (0-1] the model completes; the oracle completes the others,
+    /// so the map keeps the true world around scattered inventions and the truth beyond an
+    /// invention stays a continuation of what the guidance shows (1: every step, the world
+    /// drifts from the truth and so does what the target can be predicted from).
+    pub steps: f32,
     /// The model (safetensors bytes, config embedded).
     pub weights: &'a [u8],
     /// Its sampling options (generation's; the seed is drawn per run).
@@ -103,7 +123,7 @@ fn record_run(
     steps: usize,
     res: u32,
     rng: &mut ChaCha8Rng,
-    model: Option<sgam_model::VqRefiner>,
+    model: Option<(sgam_model::VqRefiner, f32)>,
 ) -> Result<Vec<Recorded>> {
     let renderer = Arc::new(Renderer::new(&Scene::generate(scene_seed, &SceneConfig::default())));
     let start = Vec3::new(rng.random_range(-26.0..2.0), rng.random_range(-26.0..2.0), sgam_synth::CAMERA_HEIGHT_M);
@@ -130,6 +150,8 @@ fn record_run(
     let dir = tempfile::tempdir().map_err(|e| sgam_io::IoError::Io { path: std::env::temp_dir(), source: e })?;
     let config = clevr_generator_config(scene_seed);
     let log = Arc::new(Mutex::new(Vec::new()));
+    let model =
+        model.map(|(refiner, share)| ModelSteps { refiner, share, rng: ChaCha8Rng::seed_from_u64(rng.random()) });
     let oracle = Recorder { renderer: renderer.clone(), log: log.clone(), model };
     let keyframes = Keyframes::new(dir.path(), config.source_radius_m, 16);
     let mut generator = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, oracle, config);
@@ -220,10 +242,11 @@ pub fn collect(
                 let model = match (closed_loop, model_seed) {
                     (Some(c), Some(seed)) => {
                         let options = sgam_model::RefinerOptions { seed, ..c.options };
-                        Some(
+                        Some((
                             sgam_model::VqRefiner::from_bytes(c.weights, None, options)
                                 .map_err(|source| PipelineError::ModelLoad { path: None, source })?,
-                        )
+                            c.steps,
+                        ))
                     }
                     _ => None,
                 };
@@ -282,9 +305,17 @@ pub struct CacheKey {
     /// Share of closed-loop runs ([`ClosedLoop`]; absent in caches recorded before it: 0).
     #[serde(default)]
     pub closed_loop: f32,
+    /// Share of a closed-loop run's steps the model completes ([`ClosedLoop::steps`]; absent in
+    /// caches recorded before it: 1).
+    #[serde(default = "all_steps")]
+    pub closed_loop_steps: f32,
 }
 
 const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
+
+fn all_steps() -> f32 {
+    1.0
+}
 
 /// Writes pairs atomically: magic, key JSON length + JSON, then per pair its size, intrinsics,
 /// 8-bit colour, f32 depth, mask bytes and u32 codes; a CRC-32 of everything before it last.
@@ -465,7 +496,7 @@ mod tests {
         let options = crate::settings::SamplingSettings::default().refiner_options();
         let model = sgam_model::VqRefiner::from_bytes(crate::BUNDLED_MODEL, None, options).unwrap();
         let oracle = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), None).unwrap();
-        let closed = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), Some(model)).unwrap();
+        let closed = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), Some((model, 1.0))).unwrap();
         assert_eq!(closed.len(), oracle.len());
         // the same path and the same true frames: only the map differs
         for (a, b) in oracle.iter().zip(&closed) {
@@ -478,6 +509,23 @@ mod tests {
         let differing = oracle.iter().zip(&closed).filter(|(a, b)| a.guidance.frame != b.guidance.frame).count();
         assert!(differing > 0, "every closed-loop guidance equals the oracle's");
         assert!(oracle.iter().any(|r| r.guidance.missing.iter().any(|m| *m)), "the path uncovers nothing");
+    }
+
+    #[test]
+    fn a_closed_loop_run_leaves_the_steps_outside_its_share_to_the_oracle() {
+        let options = crate::settings::SamplingSettings::default().refiner_options();
+        let model = || sgam_model::VqRefiner::from_bytes(crate::BUNDLED_MODEL, None, options).unwrap();
+        let run = |m| record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), m).unwrap();
+        let (oracle, none, half) = (run(None), run(Some((model(), 0.0))), run(Some((model(), 0.5))));
+        // no step of the model's: the oracle's run exactly
+        assert_eq!(none.len(), oracle.len());
+        for (a, b) in oracle.iter().zip(&none) {
+            assert_eq!(a.guidance.frame, b.guidance.frame);
+        }
+        // half of them: the model's inventions show in some later guidance, the truth stays
+        let differing = oracle.iter().zip(&half).filter(|(a, b)| a.guidance.frame != b.guidance.frame).count();
+        assert!(differing > 0, "no step of the half-share run was the model's");
+        assert!(oracle.iter().zip(&half).all(|(a, b)| a.truth == b.truth));
     }
 
     #[test]
@@ -533,6 +581,7 @@ mod tests {
             seed: 2,
             stream: 1,
             closed_loop: 0.0,
+            closed_loop_steps: 1.0,
         };
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("pairs.bin");
@@ -546,6 +595,13 @@ mod tests {
             assert_eq!(a.codes, b.codes);
         }
         assert!(read_cache(&path, &CacheKey { seed: 3, ..key.clone() }).unwrap().is_none());
+        assert!(read_cache(&path, &CacheKey { closed_loop_steps: 0.5, ..key.clone() }).unwrap().is_none());
+        // a cache written before the closed-loop options existed reads as the oracle's, every step
+        let old: CacheKey = serde_json::from_str(
+            r#"{"version":1,"pairs":3,"steps_per_run":5,"crop":16,"scenes":10,"seed":2,"stream":1}"#,
+        )
+        .unwrap();
+        assert_eq!(old, key);
         let mut bytes = std::fs::read(&path).unwrap();
         let mid = bytes.len() / 2;
         bytes[mid] ^= 0x10;

@@ -66,6 +66,12 @@ pub struct ContextArgs {
     /// still the true frame. Validation pairs stay the oracle's.
     #[arg(long, default_value_t = 0.0)]
     pub closed_loop: f32,
+    /// Share of a closed-loop run's steps (0-1] that the model completes; the oracle completes
+    /// the rest, so the map stays the true world around scattered inventions and the true frame
+    /// beyond an invention is still what the guidance around it implies (1: every step, and the
+    /// world drifts away from the truth the targets come from).
+    #[arg(long, default_value_t = 1.0)]
+    pub closed_loop_steps: f32,
     /// Validate every N steps (0 = only at the start).
     #[arg(long, default_value_t = 250)]
     pub val_every: u64,
@@ -90,6 +96,9 @@ fn validate(a: &ContextArgs) -> Result<()> {
     }
     if !(a.closed_loop.is_finite() && (0.0..=1.0).contains(&a.closed_loop)) {
         bail!("--closed-loop {} must be a share between 0 and 1", a.closed_loop);
+    }
+    if !(a.closed_loop_steps.is_finite() && a.closed_loop_steps > 0.0 && a.closed_loop_steps <= 1.0) {
+        bail!("--closed-loop-steps {} must be a share above 0 and at most 1", a.closed_loop_steps);
     }
     if !(a.whole_hole.is_finite() && (0.0..=1.0).contains(&a.whole_hole)) {
         bail!("--whole-hole {} must be a share between 0 and 1", a.whole_hole);
@@ -193,6 +202,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
         seed: a.common.seed,
         closed_loop: (a.closed_loop > 0.0).then(|| sgam_pipeline::codepairs::ClosedLoop {
             share: a.closed_loop,
+            steps: a.closed_loop_steps,
             weights: &start_bytes,
             options: sgam_pipeline::settings::SamplingSettings::default().refiner_options(),
         }),

@@ -142,6 +142,7 @@ pub(crate) fn recorded_pairs(
         seed: spec.seed,
         stream,
         closed_loop: closed_loop.map_or(0.0, |c| c.share),
+        closed_loop_steps: closed_loop.map_or(1.0, |c| c.steps),
     };
     let path = spec.run.join(format!("pairs-{stream}.bin"));
     if let (false, Some(dir)) = (path.exists(), spec.pairs_from) {
@@ -152,7 +153,7 @@ pub(crate) fn recorded_pairs(
         if sgam_pipeline::codepairs::read_cache(&src, &key)?.is_none() {
             bail!(
                 "{}: recorded with other --pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / \
-                 --closed-loop; --pairs-from needs the options it was recorded with",
+                 --closed-loop / --closed-loop-steps; --pairs-from needs the options it was recorded with",
                 src.display()
             );
         }
@@ -168,7 +169,7 @@ pub(crate) fn recorded_pairs(
             Some(p) => return Ok(p),
             None if resuming => bail!(
                 "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
-                 --steps-per-run / --seed / --closed-loop; resume with the options it started with",
+                 --steps-per-run / --seed / --closed-loop / --closed-loop-steps; resume with the options it started with",
                 path.display()
             ),
             None => eprintln!("{}: recorded with other options; recording again", path.display()),
