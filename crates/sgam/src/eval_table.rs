@@ -231,6 +231,7 @@ fn world_args(a: &TableArgs, row: &Row) -> WorldArgs {
         out: Some(a.out.clone()),
         keep_snapshots: false,
         loop_out: None,
+        no_loop: false,
         json: true,
     }
 }

@@ -84,6 +84,9 @@ pub struct WorldArgs {
     /// worlds' folder); eval table's trajectory rows share the zig-zag's.
     #[arg(skip)]
     pub loop_out: Option<PathBuf>,
+    /// Skip the loop-consistency runs (a training run's short worlds: its loop is NaN).
+    #[arg(skip)]
+    pub no_loop: bool,
     /// Print only the JSON line.
     #[arg(long)]
     pub json: bool,
@@ -350,13 +353,11 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
             gen_features,
             ref_features,
             step_ms: median_step_ms(&gen_dir),
-            loop_psnr_ssim: crate::eval_grow::loop_consistency(
-                args,
-                scene,
-                args.refiner.effective(),
-                &label,
-                &loop_root,
-            )?,
+            loop_psnr_ssim: if args.no_loop {
+                (f64::NAN, f64::NAN)
+            } else {
+                crate::eval_grow::loop_consistency(args, scene, args.refiner.effective(), &label, &loop_root)?
+            },
         });
     }
     let gen_stats: Vec<WorldStats> = results.iter().map(|r| r.generated.clone()).collect();

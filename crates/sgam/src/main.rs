@@ -30,6 +30,7 @@ mod train_common;
 mod train_context;
 mod train_decoder;
 mod train_sampler;
+mod train_world;
 mod video;
 mod view;
 mod viewer_page;

@@ -27,6 +27,16 @@ pub fn bar(len: u64, what: &str) -> ProgressBar {
     pb
 }
 
+/// Prints a line above `pb` on a terminal, and as a plain log line otherwise (a log's bar keeps
+/// only its own last line, so a line handed to it would be lost).
+pub fn println(pb: &ProgressBar, line: impl AsRef<str>) {
+    if std::io::IsTerminal::is_terminal(&std::io::stderr()) && !pb.is_hidden() {
+        pb.println(line);
+    } else {
+        eprintln!("{}", line.as_ref());
+    }
+}
+
 /// A [`TermLike`] that turns a bar's redraws into log lines: the last line drawn is printed
 /// when at least `every` has passed since the previous one, or since the bar was made (cursor
 /// moves and clears are ignored).

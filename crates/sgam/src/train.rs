@@ -326,7 +326,7 @@ pub fn run(cmd: TrainCommand) -> Result<()> {
             "images_per_s": p.images_per_s,
         });
         if let Some((psnr, images)) = &p.validation {
-            pb.println(format!("step {}: validation PSNR {psnr:.2} dB", r.step));
+            progress::println(&pb, format!("step {}: validation PSNR {psnr:.2} dB", r.step));
             let rows: Vec<Vec<&RgbdFrame>> =
                 images.iter().map(|v: &ValidationImage| vec![&v.input, &v.output, &v.target]).collect();
             let _ = write_strip(&run_dir.join("val").join(format!("step-{:06}.png", r.step)), &rows);

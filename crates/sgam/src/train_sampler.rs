@@ -118,6 +118,10 @@ pub(crate) struct PairSpec<'a> {
     pub pairs_from: Option<&'a std::path::Path>,
 }
 
+/// The options a pair cache was recorded with (named by the errors when they differ).
+const RECORDING_OPTIONS: &str =
+    "--pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / --closed-loop / --closed-loop-steps";
+
 /// `n` training pairs of stream `stream`, recorded from the generator with the oracle on
 /// training scenes (targets from `target`), deterministic from the spec's seed; cached in
 /// `RUN/pairs-{stream}.bin` so a restart or a resume trains at once. A resumed run refuses a
@@ -152,8 +156,7 @@ pub(crate) fn recorded_pairs(
         }
         if sgam_pipeline::codepairs::read_cache(&src, &key)?.is_none() {
             bail!(
-                "{}: recorded with other --pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / \
-                 --closed-loop / --closed-loop-steps; --pairs-from needs the options it was recorded with",
+                "{}: recorded with other {RECORDING_OPTIONS}; --pairs-from needs the options it was recorded with",
                 src.display()
             );
         }
@@ -168,8 +171,7 @@ pub(crate) fn recorded_pairs(
         match sgam_pipeline::codepairs::read_cache(&path, &key)? {
             Some(p) => return Ok(p),
             None if resuming => bail!(
-                "{}: this run's pairs were recorded with other --pairs / --val-pairs / --crop / --scenes / \
-                 --steps-per-run / --seed / --closed-loop / --closed-loop-steps; resume with the options it started with",
+                "{}: this run's pairs were recorded with other {RECORDING_OPTIONS}; resume with the options it started with",
                 path.display()
             ),
             None => eprintln!("{}: recorded with other options; recording again", path.display()),
@@ -336,11 +338,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
             v.depth_l1_missing.unwrap_or(f32::NAN),
             v.depth_bias_missing.unwrap_or(f32::NAN)
         );
-        if pb.is_hidden() {
-            eprintln!("{line}");
-        } else {
-            pb.println(line);
-        }
+        progress::println(pb, line);
         writeln!(val_log, "{}", serde_json::json!({ "step": trainer.step, "report": v }))?;
         Ok(())
     };

@@ -239,6 +239,69 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
 }
 
 #[test]
+fn context_training_logs_a_short_world_per_validation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("ctx");
+    let r = run.to_str().unwrap();
+    let mut args = vec![
+        "train",
+        "context",
+        "--run",
+        r,
+        "--dim",
+        "16",
+        "--layers",
+        "1",
+        "--heads",
+        "2",
+        "--pairs",
+        "16",
+        "--val-pairs",
+        "4",
+        "--crop",
+        "32",
+        "--steps-per-run",
+        "2",
+        "--batch",
+        "4",
+        "--steps",
+        "2",
+        "--ckpt-every",
+        "2",
+        "--val-every",
+        "2",
+        "--scenes",
+        "3",
+    ];
+    // refused before anything is recorded, by name
+    let mut bad = args.clone();
+    bad.extend(["--world-steps", "10", "--world-paths", "line,line"]);
+    let out = sgam(&bad);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--world-paths") && err.contains("twice"), "{err}");
+    assert!(!run.join("pairs-1.bin").exists());
+    args.extend(["--world-steps", "10", "--world-paths", "line"]);
+    let err = ok(&args);
+    assert!(err.contains("step 2: 10-step world from seed 1000008: line: density"), "{err}");
+    // one line per validation (steps 0 and 2), each against the true world of the same path
+    let log = std::fs::read_to_string(run.join("world.jsonl")).unwrap();
+    let lines: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.iter().map(|v| v["step"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 2], "{log}");
+    for v in &lines {
+        assert_eq!((v["trajectory"].as_str(), v["world_steps"].as_u64()), (Some("line"), Some(10)), "{v}");
+        let ground = v["ratio"]["ground_rms"].as_f64().unwrap();
+        assert!(ground.is_finite() && ground > 0.0, "{v}");
+        assert!(v["compact_share"]["oracle"].as_f64().is_some_and(|c| (0.0..=1.0).contains(&c)), "{v}");
+    }
+    // the true world is kept for the next validation; the judged ones and their weights are not
+    let seed = run.join("world/line/seed-1000008");
+    let kept: Vec<String> =
+        std::fs::read_dir(&seed).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert_eq!(kept, ["oracle"], "{kept:?}");
+    assert!(!run.join("world/step-2.safetensors").exists());
+}
+
+#[test]
 fn fuse_rejects_bad_inputs_with_the_path() {
     let tmp = tempfile::tempdir().unwrap();
     let out = sgam(&["fuse", "/nonexistent/seq", "--out", tmp.path().join("m.ply").to_str().unwrap()]);

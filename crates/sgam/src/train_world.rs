@@ -1,0 +1,133 @@
+//! A short world per validation of a training run (`--world-steps`): the weights as they are
+//! grown along each of a few paths from one held-out seed, judged against the true world of the
+//! same path by `sgam eval world`'s statistics, one line per path in `RUN/world.jsonl`.
+//! Validation cross-entropy says whether the model predicts codes; only a world says whether
+//! its inventions stay objects when they are re-rendered step after step.
+
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use serde_json::json;
+use sgam_pipeline::settings::{
+    InventedPixelSettings, MapSettings, PathSettings, RefinerKind, RefinerSettings, SamplingSettings, TrajectoryKind,
+};
+use sgam_pipeline::BankSpec;
+
+use crate::eval_world::WorldArgs;
+
+/// The seed scene of the training-time worlds: held out from training, and past the eight
+/// held-out seeds (1,000,000-007) the bars are judged on, so choosing a checkpoint by its
+/// world never tunes to them.
+pub const WORLD_SEED: u64 = sgam_pipeline::HELD_OUT_SEED_BASE + 8;
+
+/// What a training run grows at each validation.
+#[derive(Debug, Clone)]
+pub struct WorldCheck {
+    /// Steps per world (0: none).
+    pub steps: usize,
+    /// The paths, each against the oracle along the same one.
+    pub paths: Vec<TrajectoryKind>,
+}
+
+impl WorldCheck {
+    /// Refuses steps `eval world` would refuse and an empty or repeated path list.
+    pub fn validate(&self) -> Result<()> {
+        if self.steps == 0 {
+            return Ok(());
+        }
+        if !(10..=2000).contains(&self.steps) {
+            anyhow::bail!("--world-steps {} must be 0 (none) or in 10..=2000", self.steps);
+        }
+        crate::eval_trajectories::check(&self.paths).context("--world-paths")
+    }
+
+    /// Grows this check's worlds with `weights` (a model file's bytes) at training step `step`,
+    /// writes one line per path to `log` (the run's `world.jsonl`) and returns a one-line summary. The
+    /// oracle's worlds are grown once and kept in `RUN/world/`; the model's are deleted once
+    /// judged (each is some 20 MB of frames).
+    pub fn run(&self, run: &Path, weights: &[u8], step: u64, log: &mut impl Write) -> Result<String> {
+        let dir = run.join("world");
+        std::fs::create_dir_all(&dir).with_context(|| format!("{}: cannot create", dir.display()))?;
+        let model = dir.join(format!("step-{step}.safetensors"));
+        sgam_io::write_atomic(&model, |w| w.write_all(weights))?;
+        let mut summary = Vec::new();
+        for &kind in &self.paths {
+            let args = WorldArgs {
+                seeds: 1,
+                first_seed: WORLD_SEED,
+                steps: self.steps,
+                path: PathSettings::kind(kind),
+                refiner: RefinerSettings {
+                    model: Some(model.clone()),
+                    bank: BankSpec::None,
+                    ..RefinerSettings::kind(RefinerKind::Model)
+                },
+                sampling: SamplingSettings::default(),
+                invented: InventedPixelSettings::default(),
+                map: MapSettings::default(),
+                paper: false,
+                region_size: 5.0,
+                out: Some(dir.join(crate::eval_trajectories::name(kind))),
+                keep_snapshots: false,
+                loop_out: None,
+                no_loop: true,
+                json: true,
+            };
+            let world = crate::eval_world::evaluate(&args)?;
+            let generated =
+                dir.join(crate::eval_trajectories::name(kind)).join(format!("seed-{WORLD_SEED}")).join(args.label());
+            std::fs::remove_dir_all(&generated)
+                .with_context(|| format!("{}: cannot delete the judged world", generated.display()))?;
+            let line = world_line(step, kind, self.steps, &world);
+            summary.push(format!(
+                "{}: density {:.2}x, p90 footprint {:.2}x, ground {:.2}x, compact {:.2}/{:.2}, KID {:.4}",
+                crate::eval_trajectories::name(kind),
+                line["ratio"]["objects_per_100m2"].as_f64().unwrap_or(f64::NAN),
+                line["ratio"]["p90_object_area"].as_f64().unwrap_or(f64::NAN),
+                line["ratio"]["ground_rms"].as_f64().unwrap_or(f64::NAN),
+                line["compact_share"]["generated"].as_f64().unwrap_or(f64::NAN),
+                line["compact_share"]["oracle"].as_f64().unwrap_or(f64::NAN),
+                line["kid"].as_f64().unwrap_or(f64::NAN),
+            ));
+            writeln!(log, "{line}").with_context(|| format!("{}: cannot write world.jsonl", run.display()))?;
+        }
+        std::fs::remove_file(&model).with_context(|| format!("{}: cannot delete", model.display()))?;
+        Ok(format!(
+            "step {step}: {}-step world{} from seed {WORLD_SEED}: {}",
+            self.steps,
+            if self.paths.len() > 1 { "s" } else { "" },
+            summary.join("; ")
+        ))
+    }
+}
+
+/// One `world.jsonl` line: the ratios to the oracle that the bars name, the shapes, KID.
+fn world_line(step: u64, kind: TrajectoryKind, steps: usize, world: &serde_json::Value) -> serde_json::Value {
+    let (g, o) = (&world["generated"], &world["oracle"]);
+    let ratio = |k: &str| {
+        let (a, b) = (g[k].as_f64().unwrap_or(f64::NAN), o[k].as_f64().unwrap_or(f64::NAN));
+        if b.abs() > 0.0 {
+            a / b
+        } else {
+            f64::NAN
+        }
+    };
+    json!({
+        "step": step,
+        "trajectory": crate::eval_trajectories::name(kind),
+        "seed_scene": WORLD_SEED,
+        "world_steps": steps,
+        "ratio": {
+            "objects_per_100m2": ratio("objects_per_100m2"),
+            "median_object_area": ratio("median_object_area_m2"),
+            "p90_object_area": ratio("p90_object_area_m2"),
+            "object_saturation": ratio("object_saturation"),
+            "ground_rms": ratio("ground_rms_mm"),
+        },
+        "median_solidity": { "generated": g["object_shape"]["median_solidity"], "oracle": o["object_shape"]["median_solidity"] },
+        "compact_share": { "generated": g["object_shape"]["compact_share"], "oracle": o["object_shape"]["compact_share"] },
+        "kid": world["kid"],
+        "step_ms_median": world["step_ms_median"],
+    })
+}
