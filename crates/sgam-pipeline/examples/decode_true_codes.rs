@@ -35,6 +35,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         stream: 2,
         closed_loop: 0.0,
         closed_loop_steps: 1.0,
+        recorded_with: None,
     };
     let pairs = read_cache(std::path::Path::new(cache), &key)?.ok_or("the cache was recorded with another key")?;
     std::fs::create_dir_all(out)?;

@@ -309,6 +309,12 @@ pub struct CacheKey {
     /// caches recorded before it: 1).
     #[serde(default = "all_steps")]
     pub closed_loop_steps: f32,
+    /// CRC-32 of the closed-loop model's weights ([`ClosedLoop::weights`]; `None` for the
+    /// oracle's runs and in caches recorded before it). Asked for as `None` by [`read_cache`], it
+    /// matches any model: a resumed run reads back its own pairs, whose recording model was its
+    /// starting point, not the weights it resumes with.
+    #[serde(default)]
+    pub recorded_with: Option<u32>,
 }
 
 const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
@@ -349,7 +355,8 @@ pub fn write_cache(path: &std::path::Path, key: &CacheKey, pairs: &[CodePair]) -
     Ok(())
 }
 
-/// Reads a cache written by [`write_cache`]; `Ok(None)` when it was recorded with another key.
+/// Reads a cache written by [`write_cache`]; `Ok(None)` when it was recorded with another key
+/// (a key asking for no [`CacheKey::recorded_with`] takes a cache recorded with any model).
 pub fn read_cache(path: &std::path::Path, key: &CacheKey) -> Result<Option<Vec<CodePair>>> {
     let bytes = std::fs::read(path).map_err(|e| sgam_io::IoError::Io { path: path.to_path_buf(), source: e })?;
     let bad = |what: &str| PipelineError::Corrupt { path: path.to_path_buf(), msg: what.to_string() };
@@ -369,7 +376,10 @@ pub fn read_cache(path: &std::path::Path, key: &CacheKey) -> Result<Option<Vec<C
     };
     let u64_of = |s: &[u8]| u64::from_le_bytes(s.try_into().unwrap_or([0; 8]));
     let json_len = u64_of(take(8)?) as usize;
-    let stored: CacheKey = serde_json::from_slice(take(json_len)?).map_err(|e| bad(&format!("key: {e}")))?;
+    let mut stored: CacheKey = serde_json::from_slice(take(json_len)?).map_err(|e| bad(&format!("key: {e}")))?;
+    if key.recorded_with.is_none() {
+        stored.recorded_with = None;
+    }
     if &stored != key {
         return Ok(None);
     }
@@ -582,6 +592,7 @@ mod tests {
             stream: 1,
             closed_loop: 0.0,
             closed_loop_steps: 1.0,
+            recorded_with: None,
         };
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("pairs.bin");
@@ -596,6 +607,14 @@ mod tests {
         }
         assert!(read_cache(&path, &CacheKey { seed: 3, ..key.clone() }).unwrap().is_none());
         assert!(read_cache(&path, &CacheKey { closed_loop_steps: 0.5, ..key.clone() }).unwrap().is_none());
+        // pairs recorded with one closed-loop model: another model's run refuses them, a resumed
+        // run (asking for none) takes them
+        let closed = CacheKey { closed_loop: 0.5, recorded_with: Some(7), ..key.clone() };
+        let closed_path = dir.path().join("closed.bin");
+        write_cache(&closed_path, &closed, &pairs).unwrap();
+        assert!(read_cache(&closed_path, &closed).unwrap().is_some());
+        assert!(read_cache(&closed_path, &CacheKey { recorded_with: Some(8), ..closed.clone() }).unwrap().is_none());
+        assert!(read_cache(&closed_path, &CacheKey { recorded_with: None, ..closed.clone() }).unwrap().is_some());
         // a cache written before the closed-loop options existed reads as the oracle's, every step
         let old: CacheKey = serde_json::from_str(
             r#"{"version":1,"pairs":3,"steps_per_run":5,"crop":16,"scenes":10,"seed":2,"stream":1}"#,

@@ -120,7 +120,8 @@ pub(crate) struct PairSpec<'a> {
 
 /// The options a pair cache was recorded with (named by the errors when they differ).
 const RECORDING_OPTIONS: &str =
-    "--pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / --closed-loop / --closed-loop-steps";
+    "--pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / --closed-loop / --closed-loop-steps / \
+     closed-loop --model";
 
 /// `n` training pairs of stream `stream`, recorded from the generator with the oracle on
 /// training scenes (targets from `target`), deterministic from the spec's seed; cached in
@@ -147,6 +148,9 @@ pub(crate) fn recorded_pairs(
         stream,
         closed_loop: closed_loop.map_or(0.0, |c| c.share),
         closed_loop_steps: closed_loop.map_or(1.0, |c| c.steps),
+        // a resumed run's pairs were recorded with its starting model, not the weights it
+        // resumes with: any model's (the other options still must match)
+        recorded_with: closed_loop.filter(|_| !resuming).map(|c| crc32fast::hash(c.weights)),
     };
     let path = spec.run.join(format!("pairs-{stream}.bin"));
     if let (false, Some(dir)) = (path.exists(), spec.pairs_from) {
@@ -191,6 +195,9 @@ pub(crate) fn recorded_pairs(
         &mut |k| pb.set_position(k as u64),
     )?;
     pb.finish_and_clear();
+    // named by the model that recorded them, also when a resumed run records again
+    let key =
+        sgam_pipeline::codepairs::CacheKey { recorded_with: closed_loop.map(|c| crc32fast::hash(c.weights)), ..key };
     sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
     Ok(pairs)
 }

@@ -236,6 +236,24 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     let out = tmp.path().join("m.safetensors");
     ok(&["train", "export", run.join("ckpt/model.safetensors").to_str().unwrap(), out.to_str().unwrap()]);
     assert!(std::fs::metadata(&out).unwrap().len() > 100_000);
+    // closed-loop pairs are named by the model that recorded them: a run from another model
+    // refuses them, a run from the same model takes them
+    let closed = tmp.path().join("ctx-closed");
+    let mut d: Vec<&str> = args("1").into_iter().map(|x| if x == r { closed.to_str().unwrap() } else { x }).collect();
+    d.extend(["--closed-loop", "1", "--model", out.to_str().unwrap()]);
+    ok(&d);
+    // (the other run starts from the bundled model)
+    for (name, model) in [("ctx-same", Some(out.to_str().unwrap())), ("ctx-other", None)] {
+        let takes = model.is_some();
+        let dir = tmp.path().join(name);
+        let mut e: Vec<&str> = args("1").into_iter().map(|x| if x == r { dir.to_str().unwrap() } else { x }).collect();
+        e.extend(["--closed-loop", "1", "--pairs-from", closed.to_str().unwrap()]);
+        e.extend(model.map(|m| ["--model", m]).into_iter().flatten());
+        let out = sgam(&e);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.success(), takes, "{name}: {err}");
+        assert!(takes || err.contains("closed-loop --model"), "{err}");
+    }
 }
 
 #[test]
