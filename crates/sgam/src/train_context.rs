@@ -75,16 +75,9 @@ pub struct ContextArgs {
     /// Validate every N steps (0 = only at the start).
     #[arg(long, default_value_t = 250)]
     pub val_every: u64,
-    /// At each validation, grow a world of this many steps with the weights as they are along
-    /// each of --world-paths from one held-out seed (1,000,008: past the eight the bars are
-    /// judged on) and log its statistics against the true world's in RUN/world.jsonl (density,
-    /// footprints, ground, shapes, KID). 0: none. About 0.3 s a step on 2 cores; 60-100 steps
-    /// show a growing mound.
-    #[arg(long, value_name = "STEPS", default_value_t = 0)]
-    pub world_steps: usize,
-    /// The paths of --world-steps, comma-separated.
-    #[arg(long, value_name = "LIST", value_delimiter = ',', default_value = "zigzag,spiral", value_parser = crate::eval_trajectories::trajectory_parser())]
-    pub world_paths: Vec<sgam_pipeline::settings::TrajectoryKind>,
+    /// Short worlds grown at each validation.
+    #[command(flatten)]
+    pub world: crate::train_world::WorldCheck,
     /// Stop (checkpointed, resumable) after this many seconds of training, pairs excluded:
     /// fits a run to a session or a lent accelerator's minutes.
     #[arg(long, value_name = "SECONDS")]
@@ -94,10 +87,6 @@ pub struct ContextArgs {
     /// the GPU. Either resumes the other's checkpoint, with a fresh optimizer.
     #[arg(long)]
     pub burn_autodiff: bool,
-}
-
-fn world_check(a: &ContextArgs) -> crate::train_world::WorldCheck {
-    crate::train_world::WorldCheck { steps: a.world_steps, paths: a.world_paths.clone() }
 }
 
 fn validate(a: &ContextArgs) -> Result<()> {
@@ -122,7 +111,7 @@ fn validate(a: &ContextArgs) -> Result<()> {
             bail!("--time-limit {t} must be a positive number of seconds");
         }
     }
-    world_check(a).validate()?;
+    a.world.validate()?;
     if a.steps_per_run == 0 || a.steps_per_run > 1000 {
         bail!("--steps-per-run {} must be in 1..=1000", a.steps_per_run);
     }
@@ -252,12 +241,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
     pb.set_position(trainer.step);
     let t0 = std::time::Instant::now();
     let first = trainer.step;
-    let world = world_check(a);
-    let mut world_log = if world.steps > 0 {
-        Some(crate::guard::open_step_log(&a.common.run, "world.jsonl", trainer.step)?)
-    } else {
-        None
-    };
+    let mut world_log = a.world.open_log(&a.common.run, trainer.step)?;
     let mut validate = |trainer: &ContextTrainer, pb: &indicatif::ProgressBar| -> Result<()> {
         let whole = trainer.evaluate(&val_pairs, 1.0, 16)?;
         let reveal = trainer.evaluate(&val_pairs, 0.0, 16)?;
@@ -272,14 +256,8 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             serde_json::json!({ "step": trainer.step, "first_pass": whole, "reveal": reveal,
                 "wall_s": t0.elapsed().as_secs_f64() })
         )?;
-        if let Some(world_log) = world_log.as_mut() {
-            let bytes = sgam_model::params::to_safetensors_bytes(
-                &trainer.weights(),
-                sgam_model::params::WeightPrecision::F16,
-                Some(sgam_model::refiner::weight_metadata(&trainer.model_config)?),
-            )?;
-            let line = pb.suspend(|| world.run(&a.common.run, &bytes, trainer.step, world_log))?;
-            progress::println(pb, line);
+        if let Some(log) = world_log.as_mut() {
+            a.world.run_weights(&a.common.run, &trainer.weights(), &trainer.model_config, trainer.step, log, pb)?;
         }
         Ok(())
     };

@@ -15,6 +15,7 @@ use sgam_model::features::FEATURE_MODEL;
 
 fn validate(a: &SamplerArgs) -> Result<()> {
     a.common.validate()?;
+    a.world.validate()?;
     if a.pairs < a.common.batch || a.pairs > 200_000 {
         bail!("--pairs {} must be at least --batch ({}) and at most 200000", a.pairs, a.common.batch);
     }
@@ -102,6 +103,9 @@ pub struct SamplerArgs {
     /// Validate every N steps.
     #[arg(long, default_value_t = 500)]
     pub val_every: u64,
+    /// Short worlds grown at each validation.
+    #[command(flatten)]
+    pub world: crate::train_world::WorldCheck,
 }
 
 /// What a run's recorded pairs are drawn with (its options; the cache key of `RUN/pairs-*.bin`).
@@ -331,6 +335,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     let is_terminal = std::io::IsTerminal::is_terminal(&std::io::stderr());
     let t0 = std::time::Instant::now();
     let first = trainer.step;
+    let mut world_log = a.world.open_log(&a.common.run, trainer.step)?;
     let mut validate = |trainer: &CodeTrainer, pb: &indicatif::ProgressBar| -> Result<()> {
         let v = trainer.evaluate(&val_pairs, 16)?;
         let line = format!(
@@ -347,6 +352,9 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         );
         progress::println(pb, line);
         writeln!(val_log, "{}", serde_json::json!({ "step": trainer.step, "report": v }))?;
+        if let Some(log) = world_log.as_mut() {
+            a.world.run_weights(&a.common.run, &trainer.weights(), &trainer.model_config, trainer.step, log, pb)?;
+        }
         Ok(())
     };
     if trainer.step == 0 {

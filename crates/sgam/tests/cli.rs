@@ -320,6 +320,45 @@ fn context_training_logs_a_short_world_per_validation() {
 }
 
 #[test]
+fn sampler_training_logs_a_short_world_per_validation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("s");
+    let err = ok(&[
+        "train",
+        "sampler",
+        "--run",
+        run.to_str().unwrap(),
+        "--pairs",
+        "8",
+        "--val-pairs",
+        "4",
+        "--crop",
+        "32",
+        "--steps-per-run",
+        "2",
+        "--batch",
+        "4",
+        "--steps",
+        "1",
+        "--ckpt-every",
+        "1",
+        "--val-every",
+        "1",
+        "--scenes",
+        "3",
+        "--world-steps",
+        "10",
+        "--world-paths",
+        "line",
+    ]);
+    assert!(err.contains("step 1: 10-step world from seed 1000008: line: density"), "{err}");
+    let log = std::fs::read_to_string(run.join("world.jsonl")).unwrap();
+    let steps: Vec<u64> =
+        log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [0, 1], "{log}");
+}
+
+#[test]
 fn fuse_rejects_bad_inputs_with_the_path() {
     let tmp = tempfile::tempdir().unwrap();
     let out = sgam(&["fuse", "/nonexistent/seq", "--out", tmp.path().join("m.ply").to_str().unwrap()]);
