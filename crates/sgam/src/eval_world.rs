@@ -389,6 +389,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "ratio_to_oracle": {
             "objects_per_100m2": ratio(gp.objects_per_100m2, op.objects_per_100m2),
             "median_object_area": ratio(gp.median_object_area_m2, op.median_object_area_m2),
+            "p90_object_area": ratio(gp.p90_object_area_m2, op.p90_object_area_m2),
             "object_saturation": ratio(gp.object_saturation, op.object_saturation),
             "ground_rms": ratio(gp.ground_rms_mm, op.ground_rms_mm),
             "compact_object_share": ratio(

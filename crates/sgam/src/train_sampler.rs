@@ -142,6 +142,7 @@ pub(crate) fn recorded_pairs(
 ) -> Result<Vec<sgam_model::generative::CodePair>> {
     // validation pairs stay the oracle's: one fixed yardstick across runs
     let closed_loop = spec.closed_loop.filter(|_| stream == 1);
+    let recorded_with = closed_loop.map(|c| crc32fast::hash(c.weights));
     let key = sgam_pipeline::codepairs::CacheKey {
         version: sgam_pipeline::codepairs::CACHE_VERSION,
         pairs: n,
@@ -154,7 +155,7 @@ pub(crate) fn recorded_pairs(
         closed_loop_steps: closed_loop.map_or(1.0, |c| c.steps),
         // a resumed run's pairs were recorded with its starting model, not the weights it
         // resumes with: any model's (the other options still must match)
-        recorded_with: closed_loop.filter(|_| !resuming).map(|c| crc32fast::hash(c.weights)),
+        recorded_with: recorded_with.filter(|_| !resuming),
     };
     let path = spec.run.join(format!("pairs-{stream}.bin"));
     if let (false, Some(dir)) = (path.exists(), spec.pairs_from) {
@@ -200,8 +201,7 @@ pub(crate) fn recorded_pairs(
     )?;
     pb.finish_and_clear();
     // named by the model that recorded them, also when a resumed run records again
-    let key =
-        sgam_pipeline::codepairs::CacheKey { recorded_with: closed_loop.map(|c| crc32fast::hash(c.weights)), ..key };
+    let key = sgam_pipeline::codepairs::CacheKey { recorded_with, ..key };
     sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
     Ok(pairs)
 }

@@ -89,6 +89,7 @@ impl WorldCheck {
         sgam_io::write_atomic(&model, |w| w.write_all(weights))?;
         let mut summary = Vec::new();
         for &kind in &self.paths {
+            let out = dir.join(crate::eval_trajectories::name(kind));
             let args = WorldArgs {
                 seeds: 1,
                 first_seed: WORLD_SEED,
@@ -104,15 +105,14 @@ impl WorldCheck {
                 map: MapSettings::default(),
                 paper: false,
                 region_size: 5.0,
-                out: Some(dir.join(crate::eval_trajectories::name(kind))),
+                out: Some(out.clone()),
                 keep_snapshots: false,
                 loop_out: None,
                 no_loop: true,
                 json: true,
             };
             let world = crate::eval_world::evaluate(&args)?;
-            let generated =
-                dir.join(crate::eval_trajectories::name(kind)).join(format!("seed-{WORLD_SEED}")).join(args.label());
+            let generated = out.join(format!("seed-{WORLD_SEED}")).join(args.label());
             std::fs::remove_dir_all(&generated)
                 .with_context(|| format!("{}: cannot delete the judged world", generated.display()))?;
             let line = world_line(step, kind, self.steps, &world);
@@ -138,29 +138,15 @@ impl WorldCheck {
     }
 }
 
-/// One `world.jsonl` line: the ratios to the oracle that the bars name, the shapes, KID.
+/// One `world.jsonl` line: `eval world`'s ratios to the oracle, the shapes, KID.
 fn world_line(step: u64, kind: TrajectoryKind, steps: usize, world: &serde_json::Value) -> serde_json::Value {
     let (g, o) = (&world["generated"], &world["oracle"]);
-    let ratio = |k: &str| {
-        let (a, b) = (g[k].as_f64().unwrap_or(f64::NAN), o[k].as_f64().unwrap_or(f64::NAN));
-        if b.abs() > 0.0 {
-            a / b
-        } else {
-            f64::NAN
-        }
-    };
     json!({
         "step": step,
         "trajectory": crate::eval_trajectories::name(kind),
         "seed_scene": WORLD_SEED,
         "world_steps": steps,
-        "ratio": {
-            "objects_per_100m2": ratio("objects_per_100m2"),
-            "median_object_area": ratio("median_object_area_m2"),
-            "p90_object_area": ratio("p90_object_area_m2"),
-            "object_saturation": ratio("object_saturation"),
-            "ground_rms": ratio("ground_rms_mm"),
-        },
+        "ratio": world["ratio_to_oracle"],
         "median_solidity": { "generated": g["object_shape"]["median_solidity"], "oracle": o["object_shape"]["median_solidity"] },
         "compact_share": { "generated": g["object_shape"]["compact_share"], "oracle": o["object_shape"]["compact_share"] },
         "kid": world["kid"],

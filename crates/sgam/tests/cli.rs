@@ -148,43 +148,47 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("bad.safetensors"));
 }
 
+/// `sgam train context` on a tiny context (16 wide, 1 block) and a few 32-pixel pairs of 3
+/// scenes, into `run`: `steps` steps, a checkpoint and a validation every 2.
+fn tiny_context_args<'a>(run: &'a str, steps: &'a str) -> Vec<&'a str> {
+    vec![
+        "train",
+        "context",
+        "--run",
+        run,
+        "--dim",
+        "16",
+        "--layers",
+        "1",
+        "--heads",
+        "2",
+        "--pairs",
+        "16",
+        "--val-pairs",
+        "4",
+        "--crop",
+        "32",
+        "--steps-per-run",
+        "2",
+        "--batch",
+        "4",
+        "--steps",
+        steps,
+        "--ckpt-every",
+        "2",
+        "--val-every",
+        "2",
+        "--scenes",
+        "3",
+    ]
+}
+
 #[test]
 fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     let tmp = tempfile::tempdir().unwrap();
     let run = tmp.path().join("ctx");
     let r = run.to_str().unwrap();
-    let args = |steps: &'static str| {
-        vec![
-            "train",
-            "context",
-            "--run",
-            r,
-            "--dim",
-            "16",
-            "--layers",
-            "1",
-            "--heads",
-            "2",
-            "--pairs",
-            "16",
-            "--val-pairs",
-            "4",
-            "--crop",
-            "32",
-            "--steps-per-run",
-            "2",
-            "--batch",
-            "4",
-            "--steps",
-            steps,
-            "--ckpt-every",
-            "2",
-            "--val-every",
-            "2",
-            "--scenes",
-            "3",
-        ]
-    };
+    let args = |steps: &'static str| tiny_context_args(r, steps);
     let err = ok(&args("3"));
     assert!(err.contains("gradients: the model's CPU kernels"), "{err}");
     let ckpt = run.join("ckpt");
@@ -261,36 +265,7 @@ fn context_training_logs_a_short_world_per_validation() {
     let tmp = tempfile::tempdir().unwrap();
     let run = tmp.path().join("ctx");
     let r = run.to_str().unwrap();
-    let mut args = vec![
-        "train",
-        "context",
-        "--run",
-        r,
-        "--dim",
-        "16",
-        "--layers",
-        "1",
-        "--heads",
-        "2",
-        "--pairs",
-        "16",
-        "--val-pairs",
-        "4",
-        "--crop",
-        "32",
-        "--steps-per-run",
-        "2",
-        "--batch",
-        "4",
-        "--steps",
-        "2",
-        "--ckpt-every",
-        "2",
-        "--val-every",
-        "2",
-        "--scenes",
-        "3",
-    ];
+    let mut args = tiny_context_args(r, "2");
     // refused before anything is recorded, by name
     let mut bad = args.clone();
     bad.extend(["--world-steps", "10", "--world-paths", "line,line"]);
