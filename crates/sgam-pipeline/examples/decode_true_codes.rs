@@ -29,6 +29,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         version: sgam_pipeline::codepairs::CACHE_VERSION,
         pairs: 256,
         steps_per_run: 40,
+        steps_per_run_mix: Vec::new(),
         crop: 128,
         scenes: 100_000,
         seed: 2,

@@ -203,12 +203,14 @@ fn crop_pair(rec: &Recorded, codes: &[u32], crop: u32, factor: u32, rng: &mut Ch
     })
 }
 
-/// Collects `n` pairs from runs of `steps_per_run` steps on random scenes below
-/// `scene_limit` (training scenes only), with target codes from the frozen `target` model.
+/// Collects `n` pairs from runs on random scenes below `scene_limit` (training scenes only),
+/// with target codes from the frozen `target` model. Each run's length is drawn from
+/// `steps_per_run` (one value: every run; repeats weight a length); pairs of long runs hold the
+/// guidance of a long horizon (a map grown over many steps, the spiral's turned views).
 /// `progress` is called with the number of pairs so far.
 pub fn collect(
     n: usize,
-    steps_per_run: usize,
+    steps_per_run: &[usize],
     crop: u32,
     scene_limit: u64,
     target: (&VqModel, &ModelConfig),
@@ -223,8 +225,9 @@ pub fn collect(
         // a batch of runs is drawn in order from `rng` (scene, own stream, closed loop or not),
         // recorded in parallel, then cropped in order: the pairs do not depend on the threads
         // (no more runs than the pairs still wanted need, at one pair a step at best)
-        let batch = (n - pairs.len()).div_ceil(steps_per_run.max(1)).clamp(1, RUNS_PER_BATCH);
-        let runs: Vec<(u64, u64, Option<u64>)> = (0..batch)
+        let shortest = steps_per_run.iter().copied().min().unwrap_or(1).max(1);
+        let batch = (n - pairs.len()).div_ceil(shortest).clamp(1, RUNS_PER_BATCH);
+        let runs: Vec<(u64, u64, Option<u64>, usize)> = (0..batch)
             .map(|_| {
                 let scene = rng.random_range(0..scene_limit);
                 let stream = rng.random::<u64>();
@@ -233,12 +236,18 @@ pub fn collect(
                     Some(c) if c.share > 0.0 && rng.random::<f32>() < c.share => Some(rng.random::<u64>()),
                     _ => None,
                 };
-                (scene, stream, model_seed)
+                // drawn only for a mix of lengths, so one length's pairs stay as they were
+                let steps = match steps_per_run {
+                    [] => 1,
+                    [one] => *one,
+                    many => many[rng.random_range(0..many.len())],
+                };
+                (scene, stream, model_seed, steps)
             })
             .collect();
         let recorded: Vec<Result<Vec<Recorded>>> = runs
             .par_iter()
-            .map(|&(scene, stream, model_seed)| {
+            .map(|&(scene, stream, model_seed, steps)| {
                 let model = match (closed_loop, model_seed) {
                     (Some(c), Some(seed)) => {
                         let options = sgam_model::RefinerOptions { seed, ..c.options };
@@ -250,7 +259,7 @@ pub fn collect(
                     }
                     _ => None,
                 };
-                record_run(scene, steps_per_run, 256, &mut ChaCha8Rng::seed_from_u64(stream), model)
+                record_run(scene, steps, 256, &mut ChaCha8Rng::seed_from_u64(stream), model)
             })
             .collect();
         for recorded in recorded {
@@ -292,8 +301,12 @@ pub struct CacheKey {
     pub version: u32,
     /// Pairs recorded.
     pub pairs: usize,
-    /// Steps per generator run.
+    /// Steps per generator run (the first length of a mix).
     pub steps_per_run: usize,
+    /// The run lengths drawn from when they are a mix ([`collect`]); empty for one length
+    /// (and in caches recorded before mixes).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub steps_per_run_mix: Vec<usize>,
     /// Crop side, pixels.
     pub crop: u32,
     /// Training scenes 0..scenes.
@@ -321,6 +334,16 @@ const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
 
 fn all_steps() -> f32 {
     1.0
+}
+
+impl CacheKey {
+    /// The key's run-length fields for the lengths `collect` draws from.
+    pub fn run_lengths(steps_per_run: &[usize]) -> (usize, Vec<usize>) {
+        match steps_per_run {
+            [one] => (*one, Vec::new()),
+            many => (many.first().copied().unwrap_or(0), many.to_vec()),
+        }
+    }
 }
 
 /// Writes pairs atomically: magic, key JSON length + JSON, then per pair its size, intrinsics,
@@ -487,18 +510,23 @@ mod tests {
     fn collected_pairs_do_not_depend_on_the_number_of_threads() {
         let device = sgam_model::default_device();
         let (model, config) = sgam_model::refiner::load_model_bytes(crate::BUNDLED_MODEL, None, &device).unwrap();
-        let collect_on = |threads: usize| {
+        let collect_on = |threads: usize, lengths: &[usize]| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
             pool.install(|| {
                 let mut rng = ChaCha8Rng::seed_from_u64(5);
-                collect(10, 4, 64, 1000, (&model, &config), None, &mut rng, &mut |_| {}).unwrap()
+                collect(10, lengths, 64, 1000, (&model, &config), None, &mut rng, &mut |_| {}).unwrap()
             })
         };
-        let (one, two) = (collect_on(1), collect_on(2));
+        let (one, two) = (collect_on(1, &[4]), collect_on(2, &[4]));
         assert_eq!(one.len(), 10);
         assert_eq!(one, two, "the pairs changed with the thread count");
         // pairs of several runs (a batch of 3 runs of 4 steps): not all from one scene's frames
         assert!(one.iter().any(|p| p.codes != one[0].codes));
+        // a mix of run lengths: its own pairs, as independent of the threads
+        let (mix_one, mix_two) = (collect_on(1, &[2, 6]), collect_on(2, &[2, 6]));
+        assert_eq!(mix_one.len(), 10);
+        assert_eq!(mix_one, mix_two, "the mixed pairs changed with the thread count");
+        assert_ne!(mix_one, one, "a mix of lengths recorded the one length's pairs");
     }
 
     #[test]
@@ -586,6 +614,7 @@ mod tests {
             version: 1,
             pairs: 3,
             steps_per_run: 5,
+            steps_per_run_mix: Vec::new(),
             crop: 16,
             scenes: 10,
             seed: 2,
@@ -607,6 +636,11 @@ mod tests {
         }
         assert!(read_cache(&path, &CacheKey { seed: 3, ..key.clone() }).unwrap().is_none());
         assert!(read_cache(&path, &CacheKey { closed_loop_steps: 0.5, ..key.clone() }).unwrap().is_none());
+        // a mix of run lengths is another recording than its first length alone
+        let (first, mix) = CacheKey::run_lengths(&[5, 120]);
+        assert!(read_cache(&path, &CacheKey { steps_per_run: first, steps_per_run_mix: mix, ..key.clone() })
+            .unwrap()
+            .is_none());
         // pairs recorded with one closed-loop model: another model's run refuses them, a resumed
         // run (asking for none) takes them
         let closed = CacheKey { closed_loop: 0.5, recorded_with: Some(7), ..key.clone() };

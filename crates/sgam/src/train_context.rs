@@ -52,9 +52,11 @@ pub struct ContextArgs {
     /// Crop side of a pair, pixels (the transformer's window in training).
     #[arg(long, default_value_t = 128)]
     pub crop: u32,
-    /// Steps of each recorded generator run.
-    #[arg(long, default_value_t = 40)]
-    pub steps_per_run: usize,
+    /// Steps of each recorded generator run; a comma-separated list draws each run's length
+    /// from it (repeats weight a length: `40,40,120` mixes short runs with long ones, whose
+    /// later steps show the guidance of a long horizon).
+    #[arg(long, value_delimiter = ',', default_value = "40", value_name = "STEPS[,STEPS..]")]
+    pub steps_per_run: Vec<usize>,
     /// Take the recorded pairs of another run folder (recorded with the same --pairs,
     /// --val-pairs, --crop, --scenes, --steps-per-run, --seed and --closed-loop) instead of
     /// recording them: ablations on the same data, at once.
@@ -112,9 +114,7 @@ fn validate(a: &ContextArgs) -> Result<()> {
         }
     }
     a.world.validate()?;
-    if a.steps_per_run == 0 || a.steps_per_run > 1000 {
-        bail!("--steps-per-run {} must be in 1..=1000", a.steps_per_run);
-    }
+    crate::train_sampler::validate_steps_per_run(&a.steps_per_run)?;
     if !(16..=256).contains(&a.crop) {
         bail!("--crop {} must be in 16..=256", a.crop);
     }
@@ -200,7 +200,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
     }
     let spec = crate::train_sampler::PairSpec {
         run: &a.common.run,
-        steps_per_run: a.steps_per_run,
+        steps_per_run: &a.steps_per_run,
         crop: a.crop,
         scenes: a.common.scenes,
         seed: a.common.seed,

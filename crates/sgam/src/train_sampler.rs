@@ -31,9 +31,7 @@ fn validate(a: &SamplerArgs) -> Result<()> {
     if !(a.reveal.is_finite() && (0.0..=1.0).contains(&a.reveal)) {
         bail!("--reveal {} must be a probability between 0 and 1", a.reveal);
     }
-    if a.steps_per_run == 0 || a.steps_per_run > 1000 {
-        bail!("--steps-per-run {} must be in 1..=1000", a.steps_per_run);
-    }
+    validate_steps_per_run(&a.steps_per_run)?;
     if !(16..=256).contains(&a.crop) {
         bail!("--crop {} must be in 16..=256", a.crop);
     }
@@ -85,9 +83,10 @@ pub struct SamplerArgs {
     /// Held-out pairs (from other training scenes) for the validation line.
     #[arg(long, default_value_t = 256)]
     pub val_pairs: usize,
-    /// Steps per recorded generator run.
-    #[arg(long, default_value_t = 40)]
-    pub steps_per_run: usize,
+    /// Steps per recorded generator run; a comma-separated list draws each run's length from
+    /// it (repeats weight a length: `40,40,120`).
+    #[arg(long, value_delimiter = ',', default_value = "40", value_name = "STEPS[,STEPS..]")]
+    pub steps_per_run: Vec<usize>,
     /// Take the recorded pairs of another run folder (recorded with the same --pairs,
     /// --val-pairs, --crop, --scenes, --steps-per-run and --seed) instead of recording them:
     /// ablations on the same data, at once.
@@ -111,7 +110,7 @@ pub struct SamplerArgs {
 /// What a run's recorded pairs are drawn with (its options; the cache key of `RUN/pairs-*.bin`).
 pub(crate) struct PairSpec<'a> {
     pub run: &'a std::path::Path,
-    pub steps_per_run: usize,
+    pub steps_per_run: &'a [usize],
     pub crop: u32,
     pub scenes: u64,
     pub seed: u64,
@@ -143,10 +142,12 @@ pub(crate) fn recorded_pairs(
     // validation pairs stay the oracle's: one fixed yardstick across runs
     let closed_loop = spec.closed_loop.filter(|_| stream == 1);
     let recorded_with = closed_loop.map(|c| crc32fast::hash(c.weights));
+    let (steps_per_run, steps_per_run_mix) = sgam_pipeline::codepairs::CacheKey::run_lengths(spec.steps_per_run);
     let key = sgam_pipeline::codepairs::CacheKey {
         version: sgam_pipeline::codepairs::CACHE_VERSION,
         pairs: n,
-        steps_per_run: spec.steps_per_run,
+        steps_per_run,
+        steps_per_run_mix,
         crop: spec.crop,
         scenes: spec.scenes,
         seed: spec.seed,
@@ -204,6 +205,17 @@ pub(crate) fn recorded_pairs(
     let key = sgam_pipeline::codepairs::CacheKey { recorded_with, ..key };
     sgam_pipeline::codepairs::write_cache(&path, &key, &pairs)?;
     Ok(pairs)
+}
+
+/// Checks `--steps-per-run`: one length or a mix, each in 1..=1000.
+pub(crate) fn validate_steps_per_run(lengths: &[usize]) -> Result<()> {
+    if lengths.is_empty() {
+        bail!("--steps-per-run needs at least one length");
+    }
+    if let Some(bad) = lengths.iter().find(|&&s| s == 0 || s > 1000) {
+        bail!("--steps-per-run {bad} must be in 1..=1000");
+    }
+    Ok(())
 }
 
 /// Runs `sgam train sampler`.
@@ -306,7 +318,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
     // trains at once
     let spec = PairSpec {
         run: &a.common.run,
-        steps_per_run: a.steps_per_run,
+        steps_per_run: &a.steps_per_run,
         crop: a.crop,
         scenes: a.common.scenes,
         seed: a.common.seed,

@@ -149,7 +149,7 @@ fn tiny_training_run_resumes_and_its_model_drives_generation() {
 }
 
 /// `sgam train context` on a tiny context (16 wide, 1 block) and a few 32-pixel pairs of 3
-/// scenes, into `run`: `steps` steps, a checkpoint and a validation every 2.
+/// scenes (runs of 2 or 3 steps), into `run`: `steps` steps, a checkpoint and a validation every 2.
 fn tiny_context_args<'a>(run: &'a str, steps: &'a str) -> Vec<&'a str> {
     vec![
         "train",
@@ -169,7 +169,7 @@ fn tiny_context_args<'a>(run: &'a str, steps: &'a str) -> Vec<&'a str> {
         "--crop",
         "32",
         "--steps-per-run",
-        "2",
+        "2,3",
         "--batch",
         "4",
         "--steps",
