@@ -199,8 +199,17 @@ impl VqRefiner {
     pub fn new(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device) -> Self {
         let rng = ChaCha8Rng::seed_from_u64(options.seed);
         let model = model.valid();
-        // the CPU kernels on the CPU backend; a model they do not cover keeps burn's path
-        let nhwc = if cfg!(feature = "wgpu") { None } else { NhwcNet::new(&model, &config).ok().flatten() };
+        // the CPU kernels on the CPU backend; a model they do not cover (attention) keeps burn's
+        // path, and so does one whose weights they cannot take, said aloud: it runs several
+        // times slower
+        let nhwc = if cfg!(feature = "wgpu") {
+            None
+        } else {
+            NhwcNet::new(&model, &config).unwrap_or_else(|e| {
+                eprintln!("warning: the model's CPU kernels cannot take its weights ({e}); it runs in burn, slower");
+                None
+            })
+        };
         Self {
             model,
             config,
