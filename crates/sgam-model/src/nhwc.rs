@@ -120,6 +120,31 @@ impl ConvW {
         Self::packed([cout, cin, k], bias_host, stride, pad, |co, ci, tap| host[(co * cin + ci) * kk + tap])
     }
 
+    /// A dense layer `cin -> cout` without bias whose weight is the row-major `[cin, cout]`
+    /// matrix `rows` (a product's right operand `b` in `a b`): the kernel's layout is those rows
+    /// with each padded to whole vectors, so they are copied a vector at a time, not a value at a
+    /// time through [`Self::packed`] (a weight gradient's `b` holds a batch's 4,096 rows).
+    fn from_row_major(rows: &[f32], cin: usize, cout: usize) -> Self {
+        let nv = cout.div_ceil(LANES);
+        let mut w = Vec::with_capacity(cin * nv);
+        for row in rows.chunks_exact(cout.max(1)).take(cin) {
+            let mut vecs = row.chunks_exact(LANES);
+            for v in vecs.by_ref() {
+                let mut lanes = [0.0f32; LANES];
+                lanes.copy_from_slice(v);
+                w.push(f32x16::new(lanes));
+            }
+            let tail = vecs.remainder();
+            if !tail.is_empty() {
+                let mut lanes = [0.0f32; LANES];
+                lanes[..tail.len()].copy_from_slice(tail);
+                w.push(f32x16::new(lanes));
+            }
+        }
+        w.resize(cin * nv, f32x16::ZERO);
+        Self { k: 1, stride: 1, pad: [0; 4], cin, cout, nv, w, bias: vec![f32x16::ZERO; nv] }
+    }
+
     /// The kernel's layout of a `k x k` convolution `cin -> cout` whose weight of output `co`,
     /// input `ci` and tap `tap` (row-major over the kernel) is `weight(co, ci, tap)`.
     fn packed(

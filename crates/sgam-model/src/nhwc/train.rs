@@ -790,7 +790,7 @@ fn mm_nt(a: &[f32], m: usize, b: &[f32], n: usize, k: usize, bias: Option<&[f32]
 
 /// `a b`: `a` `[m, k]`, `b` `[k, n]` -> `[m, n]`; rows in parallel.
 fn mm_nn(a: &[f32], m: usize, b: &[f32], k: usize, n: usize) -> Vec<f32> {
-    ConvW::packed([n, k, 1], None, 1, [0; 4], |co, ci, _| b[ci * n + co]).dense(a, m, None)
+    ConvW::from_row_major(b, k, n).dense(a, m, None)
 }
 
 /// `a^T b`: `a` `[k, m]`, `b` `[k, n]` -> `[m, n]`; rows in parallel.
@@ -801,7 +801,7 @@ fn mm_tn(a: &[f32], k: usize, m: usize, b: &[f32], n: usize) -> Vec<f32> {
 /// `a^T b` in at most `bands` bands of output rows (1: on the calling thread). `a` is read in
 /// place: a tile of output rows is a run of consecutive values in each row of `a`.
 fn mm_tn_bands(a: &[f32], k: usize, m: usize, b: &[f32], n: usize, bands: usize) -> Vec<f32> {
-    let w = ConvW::packed([n, k, 1], None, 1, [0; 4], |co, ci, _| b[ci * n + co]);
+    let w = ConvW::from_row_major(b, k, n);
     let mut out = vec![0.0f32; m * n];
     if m == 0 || n == 0 {
         return out;
@@ -816,26 +816,37 @@ fn mm_tn_bands(a: &[f32], k: usize, m: usize, b: &[f32], n: usize, bands: usize)
     out
 }
 
-/// Output rows `i0..` (as many as `out` holds) of `a^T b`, `b` packed in `w`.
+/// Rows of `a` (and of the packed `b`) summed per pass of [`tn_rows`]: a pass's packed `b`
+/// (`TN_BLOCK` x 4 vectors, 64 KB) and `a` (`TN_BLOCK` x the band's rows) stay in the core's
+/// L2 while every tile of output rows reads them. Unblocked, a weight gradient's long sum (a
+/// batch's 4,096 cells) streamed the whole packed `b` (up to 8 MB) once per tile of 6 rows.
+const TN_BLOCK: usize = 256;
+
+/// Output rows `i0..` (as many as `out` holds) of `a^T b`, `b` packed in `w`; the sum over `b`'s
+/// rows in blocks of [`TN_BLOCK`], each block added to what the blocks before it left in `out`.
 fn tn_rows(w: &ConvW, a: &[f32], m: usize, i0: usize, out: &mut [f32]) {
     let rows = out.len() / w.cout;
-    let mut v0 = 0;
-    while v0 < w.nv {
-        let left = w.nv - v0;
-        if left >= 4 {
-            tn_columns::<6, 4>(w, a, m, i0, rows, v0, out);
-            v0 += 4;
-        } else if left >= 2 {
-            tn_columns::<8, 2>(w, a, m, i0, rows, v0, out);
-            v0 += 2;
-        } else {
-            tn_columns::<8, 1>(w, a, m, i0, rows, v0, out);
-            v0 += 1;
+    for k0 in (0..w.cin).step_by(TN_BLOCK) {
+        let ks = [k0, (k0 + TN_BLOCK).min(w.cin)];
+        let mut v0 = 0;
+        while v0 < w.nv {
+            let left = w.nv - v0;
+            if left >= 4 {
+                tn_columns::<6, 4>(w, a, m, i0, rows, v0, ks, out);
+                v0 += 4;
+            } else if left >= 2 {
+                tn_columns::<8, 2>(w, a, m, i0, rows, v0, ks, out);
+                v0 += 2;
+            } else {
+                tn_columns::<8, 1>(w, a, m, i0, rows, v0, ks, out);
+                v0 += 1;
+            }
         }
     }
 }
 
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn tn_columns<const R: usize, const V: usize>(
     w: &ConvW,
     a: &[f32],
@@ -843,26 +854,57 @@ fn tn_columns<const R: usize, const V: usize>(
     i0: usize,
     rows: usize,
     v0: usize,
+    ks: [usize; 2],
     out: &mut [f32],
 ) {
     let mut r = 0;
     while r + R <= rows {
-        let acc = tn_tile::<R, V>(w, a, m, i0 + r, v0);
+        let acc = tn_tile::<R, V>(w, a, m, i0 + r, v0, ks, tn_load(w, r, v0, ks[0], out));
         w.store(&acc, r, v0, out, None);
         r += R;
     }
     while r < rows {
-        let acc = tn_tile::<1, V>(w, a, m, i0 + r, v0);
+        let acc = tn_tile::<1, V>(w, a, m, i0 + r, v0, ks, tn_load(w, r, v0, ks[0], out));
         w.store(&acc, r, v0, out, None);
         r += 1;
     }
 }
 
-/// `R` output rows from `i` x `V` vectors of output columns from `v0`.
+/// What earlier blocks summed into output rows `r..r + R`, vectors `v0..v0 + V` (zero before
+/// the first block; lanes past `cout` zero).
 #[inline(always)]
-fn tn_tile<const R: usize, const V: usize>(w: &ConvW, a: &[f32], m: usize, i: usize, v0: usize) -> [[f32x16; V]; R] {
+fn tn_load<const R: usize, const V: usize>(w: &ConvW, r: usize, v0: usize, k0: usize, out: &[f32]) -> [[f32x16; V]; R] {
     let mut acc = [[f32x16::ZERO; V]; R];
-    for (ci, wrow) in w.w.chunks_exact(w.nv).enumerate().take(w.cin) {
+    if k0 == 0 {
+        return acc;
+    }
+    for (dr, vecs) in acc.iter_mut().enumerate() {
+        let base = (r + dr) * w.cout;
+        for (v, vec) in vecs.iter_mut().enumerate() {
+            let c0 = (v0 + v) * LANES;
+            let n = LANES.min(w.cout - c0);
+            let mut lanes = [0.0f32; LANES];
+            lanes[..n].copy_from_slice(&out[base + c0..base + c0 + n]);
+            *vec = f32x16::new(lanes);
+        }
+    }
+    acc
+}
+
+/// `R` output rows from `i` x `V` vectors of output columns from `v0`, summed over rows
+/// `ks[0]..ks[1]` of `a` and `b` onto `acc`.
+#[inline(always)]
+fn tn_tile<const R: usize, const V: usize>(
+    w: &ConvW,
+    a: &[f32],
+    m: usize,
+    i: usize,
+    v0: usize,
+    [k0, k1]: [usize; 2],
+    mut acc: [[f32x16; V]; R],
+) -> [[f32x16; V]; R] {
+    for (j, wrow) in w.w[k0 * w.nv..k1 * w.nv].chunks_exact(w.nv).enumerate() {
+        let ci = k0 + j;
         let wv = &wrow[v0..v0 + V];
         let arow = &a[ci * m + i..ci * m + i + R];
         for r in 0..R {
@@ -882,7 +924,7 @@ fn mm_nt1(a: &[f32], m: usize, b: &[f32], n: usize, k: usize, scale: f32) -> Vec
 
 /// [`mm_nn`] on the calling thread.
 fn mm_nn1(a: &[f32], m: usize, b: &[f32], k: usize, n: usize) -> Vec<f32> {
-    ConvW::packed([n, k, 1], None, 1, [0; 4], |co, ci, _| b[ci * n + co]).dense_in_bands(a, m, None, 1)
+    ConvW::from_row_major(b, k, n).dense_in_bands(a, m, None, 1)
 }
 
 /// [`mm_tn`] on the calling thread.
@@ -905,7 +947,8 @@ mod tests {
     #[test]
     fn products_equal_their_definitions() {
         let val = |i: usize| ((i * 7919 % 1000) as f32 / 500.0) - 1.0;
-        for (m, k, n) in [(1, 1, 1), (7, 5, 19), (13, 33, 16), (6, 64, 40), (50, 3, 70)] {
+        // (a sum longer than TN_BLOCK: a^T b in blocks, each added to the ones before)
+        for (m, k, n) in [(1, 1, 1), (7, 5, 19), (13, 33, 16), (6, 64, 40), (50, 3, 70), (9, 2 * TN_BLOCK + 37, 21)] {
             let a: Vec<f32> = (0..m * k).map(val).collect(); // [m, k]
             let at: Vec<f32> = (0..k * m).map(|i| a[(i % m) * k + i / m]).collect(); // [k, m]
             let b: Vec<f32> = (0..k * n).map(|i| val(i + 5)).collect(); // [k, n]
