@@ -31,6 +31,10 @@ pub struct WorldCheck {
     /// cores; 60-100 steps show a growing mound.
     #[arg(id = "world_steps", long = "world-steps", value_name = "STEPS", default_value_t = 0)]
     pub steps: usize,
+    /// Scenes per path of --world-steps (held-out seeds 1,000,008 upward), pooled: one world's
+    /// largest object is a draw (it moves 2-3x with the sampling seed), several rank checkpoints.
+    #[arg(id = "world_scenes", long = "world-scenes", value_name = "N", default_value_t = 1)]
+    pub scenes: u64,
     /// The paths of --world-steps, comma-separated.
     #[arg(id = "world_paths", long = "world-paths", value_name = "LIST", value_delimiter = ',', default_value = "zigzag,spiral", value_parser = crate::eval_trajectories::trajectory_parser())]
     pub paths: Vec<TrajectoryKind>,
@@ -75,6 +79,9 @@ impl WorldCheck {
         if !(10..=2000).contains(&self.steps) {
             anyhow::bail!("--world-steps {} must be 0 (none) or in 10..=2000", self.steps);
         }
+        if !(1..=8).contains(&self.scenes) {
+            anyhow::bail!("--world-scenes {} must be in 1..=8", self.scenes);
+        }
         crate::eval_trajectories::check(&self.paths).context("--world-paths")
     }
 
@@ -91,7 +98,7 @@ impl WorldCheck {
         for &kind in &self.paths {
             let out = dir.join(crate::eval_trajectories::name(kind));
             let args = WorldArgs {
-                seeds: 1,
+                seeds: self.scenes,
                 first_seed: WORLD_SEED,
                 steps: self.steps,
                 path: PathSettings::kind(kind),
@@ -112,15 +119,22 @@ impl WorldCheck {
                 json: true,
             };
             let world = crate::eval_world::evaluate(&args)?;
-            let generated = out.join(format!("seed-{WORLD_SEED}")).join(args.label());
-            std::fs::remove_dir_all(&generated)
-                .with_context(|| format!("{}: cannot delete the judged world", generated.display()))?;
-            let line = world_line(step, kind, self.steps, &world);
+            for seed in WORLD_SEED..WORLD_SEED + self.scenes {
+                let generated = out.join(format!("seed-{seed}")).join(args.label());
+                std::fs::remove_dir_all(&generated)
+                    .with_context(|| format!("{}: cannot delete the judged world", generated.display()))?;
+            }
+            let line = world_line(step, kind, self.steps, self.scenes, &world);
             summary.push(format!(
-                "{}: density {:.2}x, p90 footprint {:.2}x, ground {:.2}x, compact {:.2}/{:.2}, KID {:.4}",
+                "{}: density {:.2}x, p90 footprint {:.2}x{}, ground {:.2}x, compact {:.2}/{:.2}, KID {:.4}",
                 crate::eval_trajectories::name(kind),
                 line["ratio"]["objects_per_100m2"].as_f64().unwrap_or(f64::NAN),
                 line["ratio"]["p90_object_area"].as_f64().unwrap_or(f64::NAN),
+                if self.scenes > 1 {
+                    format!(" (over 2x in {}/{})", line["scenes_over_2x_p90"], self.scenes)
+                } else {
+                    String::new()
+                },
                 line["ratio"]["ground_rms"].as_f64().unwrap_or(f64::NAN),
                 line["compact_share"]["generated"].as_f64().unwrap_or(f64::NAN),
                 line["compact_share"]["oracle"].as_f64().unwrap_or(f64::NAN),
@@ -129,22 +143,43 @@ impl WorldCheck {
             writeln!(log, "{line}").with_context(|| format!("{}: cannot write world.jsonl", run.display()))?;
         }
         std::fs::remove_file(&model).with_context(|| format!("{}: cannot delete", model.display()))?;
+        let seeds = match self.scenes {
+            1 => format!("seed {WORLD_SEED}"),
+            n => format!("seeds {WORLD_SEED}-{}", WORLD_SEED + n - 1),
+        };
         Ok(format!(
-            "step {step}: {}-step world{} from seed {WORLD_SEED}: {}",
+            "step {step}: {}-step world{} from {seeds}: {}",
             self.steps,
-            if self.paths.len() > 1 { "s" } else { "" },
+            if self.paths.len() > 1 || self.scenes > 1 { "s" } else { "" },
             summary.join("; ")
         ))
     }
 }
 
-/// One `world.jsonl` line: `eval world`'s ratios to the oracle, the shapes, KID.
-fn world_line(step: u64, kind: TrajectoryKind, steps: usize, world: &serde_json::Value) -> serde_json::Value {
+/// One `world.jsonl` line: `eval world`'s ratios to the oracle (pooled over the scenes), the
+/// shapes, KID, and how many scenes grew an object past twice the true world's p90 footprint.
+fn world_line(
+    step: u64,
+    kind: TrajectoryKind,
+    steps: usize,
+    scenes: u64,
+    world: &serde_json::Value,
+) -> serde_json::Value {
     let (g, o) = (&world["generated"], &world["oracle"]);
+    let over = world["per_seed"].as_array().map_or(0, |runs| {
+        runs.iter()
+            .filter(|r| {
+                let p90 = |w: &serde_json::Value| w["p90_object_area_m2"].as_f64();
+                matches!((p90(&r["generated"]), p90(&r["oracle"])), (Some(g), Some(o)) if o > 0.0 && g > 2.0 * o)
+            })
+            .count()
+    });
     json!({
         "step": step,
         "trajectory": crate::eval_trajectories::name(kind),
         "seed_scene": WORLD_SEED,
+        "scenes": scenes,
+        "scenes_over_2x_p90": over,
         "world_steps": steps,
         "ratio": world["ratio_to_oracle"],
         "median_solidity": { "generated": g["object_shape"]["median_solidity"], "oracle": o["object_shape"]["median_solidity"] },

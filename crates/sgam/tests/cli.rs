@@ -298,7 +298,7 @@ fn context_training_logs_a_short_world_per_validation() {
 fn sampler_training_logs_a_short_world_per_validation() {
     let tmp = tempfile::tempdir().unwrap();
     let run = tmp.path().join("s");
-    let err = ok(&[
+    let mut args = vec![
         "train",
         "sampler",
         "--run",
@@ -325,12 +325,33 @@ fn sampler_training_logs_a_short_world_per_validation() {
         "10",
         "--world-paths",
         "line",
-    ]);
-    assert!(err.contains("step 1: 10-step world from seed 1000008: line: density"), "{err}");
+        "--world-scenes",
+    ];
+    // refused before anything is recorded, by name
+    let mut bad = args.clone();
+    bad.push("9");
+    let out = sgam(&bad);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--world-scenes 9"), "{err}");
+    assert!(!run.join("pairs-1.bin").exists());
+    // two scenes pooled per validation, the scenes whose largest object passed 2x counted
+    args.push("2");
+    let err = ok(&args);
+    assert!(err.contains("step 1: 10-step worlds from seeds 1000008-1000009: line: density"), "{err}");
     let log = std::fs::read_to_string(run.join("world.jsonl")).unwrap();
-    let steps: Vec<u64> =
-        log.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["step"].as_u64().unwrap()).collect();
-    assert_eq!(steps, [0, 1], "{log}");
+    let lines: Vec<serde_json::Value> = log.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.iter().map(|v| v["step"].as_u64().unwrap()).collect::<Vec<_>>(), [0, 1], "{log}");
+    for v in &lines {
+        assert_eq!(v["scenes"].as_u64(), Some(2), "{v}");
+        assert!(v["scenes_over_2x_p90"].as_u64().is_some_and(|n| n <= 2), "{v}");
+    }
+    // each scene keeps its true world only
+    for seed in ["seed-1000008", "seed-1000009"] {
+        let dir = run.join("world/line").join(seed);
+        let kept: Vec<String> =
+            std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        assert_eq!(kept, ["oracle"], "{seed}: {kept:?}");
+    }
 }
 
 #[test]
