@@ -128,16 +128,10 @@ impl ConvW {
         let nv = cout.div_ceil(LANES);
         let mut w = Vec::with_capacity(cin * nv);
         for row in rows.chunks_exact(cout.max(1)).take(cin) {
-            let mut vecs = row.chunks_exact(LANES);
-            for v in vecs.by_ref() {
+            // the last vector of a row holds its tail, zero past `cout`
+            for v in row.chunks(LANES) {
                 let mut lanes = [0.0f32; LANES];
-                lanes.copy_from_slice(v);
-                w.push(f32x16::new(lanes));
-            }
-            let tail = vecs.remainder();
-            if !tail.is_empty() {
-                let mut lanes = [0.0f32; LANES];
-                lanes[..tail.len()].copy_from_slice(tail);
+                lanes[..v.len()].copy_from_slice(v);
                 w.push(f32x16::new(lanes));
             }
         }
