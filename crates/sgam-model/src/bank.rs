@@ -683,6 +683,19 @@ const CUT_PENALTY: f32 = 0.2;
 /// Descriptor distance charged for a band cell that a shift moves out of the bank frame.
 const OUT_OF_FRAME: f32 = 1.0;
 
+/// The cells of the holes of `missing` (4-connected, `rows x cols` cells) that touch a side of
+/// the frame and reach fewer than `thinner_than` cells in from it: the bands that wait
+/// ([`crate::RefinerOptions::bands_wait`]), in ascending order.
+pub fn thin_border_bands(missing: &[bool], rows: usize, cols: usize, thinner_than: usize) -> Vec<usize> {
+    let mut out: Vec<usize> = components(missing, rows, cols)
+        .into_iter()
+        .filter(|hole| thin_at_border(hole, rows, cols, thinner_than))
+        .flatten()
+        .collect();
+    out.sort_unstable();
+    out
+}
+
 /// Whether `hole` touches a side of the frame and reaches fewer than `thinner_than` cells in
 /// from it.
 fn thin_at_border(hole: &[usize], rows: usize, cols: usize, thinner_than: usize) -> bool {

@@ -482,6 +482,24 @@ impl ConvW {
             }
         }
     }
+
+    /// The inverse of [`Self::store`] without a skip: output rows `ox0..ox0 + R`, vectors
+    /// `v0..v0 + V` of `orow` as accumulators (lanes past `cout` zero).
+    #[inline(always)]
+    pub(crate) fn load<const R: usize, const V: usize>(&self, ox0: usize, v0: usize, orow: &[f32]) -> [[f32x16; V]; R] {
+        let mut acc = [[f32x16::ZERO; V]; R];
+        for (r, vecs) in acc.iter_mut().enumerate() {
+            let base = (ox0 + r) * self.cout;
+            for (v, vec) in vecs.iter_mut().enumerate() {
+                let c0 = (v0 + v) * LANES;
+                let n = LANES.min(self.cout - c0);
+                let mut lanes = [0.0f32; LANES];
+                lanes[..n].copy_from_slice(&orow[base + c0..base + c0 + n]);
+                *vec = f32x16::new(lanes);
+            }
+        }
+        acc
+    }
 }
 
 /// A convolution's weights on the host (`[cout, cin, k, k]`), its `[cout, cin, k]` and bias.

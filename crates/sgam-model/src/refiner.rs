@@ -121,7 +121,20 @@ pub struct RefinerOptions {
     /// hole in one piece.
     #[serde(default)]
     pub quilt_tile: usize,
+    /// A hole along the frame's border that reaches fewer than this many latent cells into the
+    /// frame waits: its pixels keep a provisional colour and no depth, so nothing is fused there,
+    /// and it widens step by step until a whole object fits (filled at once, it would commit a
+    /// sliver of whatever it holds, and the next step would have to continue a sliver). 0 fills
+    /// every hole. `None`: [`DEFAULT_BANDS_WAIT`] for a code bank's holes
+    /// ([`crate::bank::BankSearch::defer_thinner_than`]), 0 for the model's own draws (waiting
+    /// grew larger mounds there: docs/MODEL.md, session 29).
+    #[serde(default)]
+    pub bands_wait: Option<usize>,
 }
+
+/// [`RefinerOptions::bands_wait`] for a code bank's holes when not given (docs/MODEL.md, session
+/// 16: 3 against 5 cells).
+pub const DEFAULT_BANDS_WAIT: usize = 3;
 
 fn default_cells_per_pass() -> usize {
     48
@@ -147,6 +160,7 @@ impl Default for RefinerOptions {
             within_class_temperature: None,
             whole_objects: false,
             quilt_tile: 0,
+            bands_wait: None,
         }
     }
 }
@@ -380,10 +394,19 @@ impl VqRefiner {
         // drawing of a hole's edge is what the pixels are there to replace
         let quilt_pixels = bank_fits && self.bank_pixels.is_some();
         let threshold = if quilt_pixels { 0.0 } else { self.options.missing_cell_threshold };
-        let cells = missing_cells(&mask, pw, ph, f, threshold);
+        let mut cells = missing_cells(&mask, pw, ph, f, threshold);
         let sampling = self.effective_sampling();
         let sampler = (self.config.code_tau.is_some() || self.config.code_head)
             && matches!(sampling, Sampling::Temperature { .. });
+        // the model's own draws: thin bands at the border wait (a bank's search defers its own)
+        let wait_cells = if sampler && !bank_fits && self.options.bands_wait.unwrap_or(0) > 0 {
+            crate::bank::thin_border_bands(&cells, ch, cw, self.options.bands_wait.unwrap_or(0))
+        } else {
+            Vec::new()
+        };
+        for &c in &wait_cells {
+            cells[c] = false;
+        }
         let n_missing = cells.iter().filter(|m| **m).count();
         // two-level sampling: the within-class temperature in the same units as the sampling's
         let within = match (sampler, self.options.within_class_temperature) {
@@ -404,6 +427,7 @@ impl VqRefiner {
             // quilting pixels, every hole is filled: a one-cell hole keeps no decoder drawing
             let search = BankSearch {
                 min_cells: if quilt_pixels { 1 } else { BankSearch::default().min_cells },
+                defer_thinner_than: self.options.bands_wait.unwrap_or(DEFAULT_BANDS_WAIT),
                 whole_objects: self.options.whole_objects,
                 tile: if tiled { self.options.quilt_tile } else { 0 },
                 defer_runs: tiled,
@@ -483,16 +507,7 @@ impl VqRefiner {
                 }
             }
             // deferred cells keep their provisional colour and no depth: nothing is fused there
-            for &c in &fill.deferred {
-                let (cy, cx) = (c / cw, c % cw);
-                for y in cy * f..((cy + 1) * f).min(h) {
-                    for x in cx * f..((cx + 1) * f).min(w) {
-                        if missing[y * w + x] {
-                            out.depth_m.data[y * w + x] = 0.0;
-                        }
-                    }
-                }
-            }
+            drop_depth(&mut out, missing, &fill.deferred, cw, f);
             self.trace = SamplingTrace { codes, missing_cells: cells, bank_draws: fill.draws, ..Default::default() };
             return Ok(out);
         }
@@ -504,6 +519,7 @@ impl VqRefiner {
             if self.options.keep_observed {
                 keep_observed(&mut out, frame, missing);
             }
+            drop_depth(&mut out, missing, &wait_cells, cw, f);
             return Ok(out);
         }
         let passes = if sampler && n_missing > 0 {
@@ -569,6 +585,7 @@ impl VqRefiner {
         if self.options.keep_observed {
             keep_observed(&mut out, frame, missing);
         }
+        drop_depth(&mut out, missing, &wait_cells, cw, f);
         Ok(out)
     }
 
@@ -1178,6 +1195,22 @@ fn band_pixel_distance(
 /// to the source's depth at the same places (the cells next to the hole's and their sources'
 /// neighbours), so a piece of the seed taken from nearer or farther sits at the depth of the
 /// surface it continues. Without `colour` only the depth is pasted.
+/// Takes the depth off the missing pixels of latent `cells` (`cols` per row, `f` pixels a side)
+/// of `out`: a hole that waits keeps a provisional colour, and nothing is fused there.
+fn drop_depth(out: &mut RgbdFrame, missing: &[bool], cells: &[usize], cols: usize, f: usize) {
+    let (w, h) = (out.width() as usize, out.height() as usize);
+    for &c in cells {
+        let (cy, cx) = (c / cols, c % cols);
+        for y in cy * f..((cy + 1) * f).min(h) {
+            for x in cx * f..((cx + 1) * f).min(w) {
+                if missing[y * w + x] {
+                    out.depth_m.data[y * w + x] = 0.0;
+                }
+            }
+        }
+    }
+}
+
 fn paste_sources(
     out: &mut RgbdFrame,
     missing: &[bool],

@@ -303,3 +303,50 @@ fn the_refiner_with_a_context_draws_every_missing_cell_once_and_keeps_observed_p
         assert_eq!(out.colour.data[i], frame.colour.data[i]);
     }
 }
+
+#[test]
+fn a_thin_band_at_the_border_waits_without_depth_and_a_deeper_hole_is_drawn() {
+    let cfg = tiny_context_config();
+    let device = sgam_model::default_device();
+    let (w, h) = (32u32, 32u32);
+    let mut frame = RgbdFrame::empty(w, h);
+    for (i, c) in frame.colour.data.iter_mut().enumerate() {
+        *c = [(i % 7) as f32 / 7.0, 0.5, 0.2];
+    }
+    frame.depth_m.data.iter_mut().for_each(|d| *d = 10.0);
+    // 8 x 8 cells of 4 pixels: a band of 2 cells along the left side, and a hole of 3 x 3 cells
+    // in the middle that touches no side
+    let band = |x: usize| x < 8;
+    let middle = |x: usize, y: usize| (12..24).contains(&x) && (12..24).contains(&y);
+    let missing: Vec<bool> =
+        (0..(w * h) as usize).map(|i| band(i % w as usize) || middle(i % w as usize, i / w as usize)).collect();
+    let k = Intrinsics::from_fov_x(w, h, 1.0);
+    // (not given: the model's own draws do not wait)
+    for bands_wait in [None, Some(0), Some(2), Some(3)] {
+        let options = RefinerOptions {
+            sampling: Sampling::Temperature { temperature: 1.0, top_k: 0 },
+            bands_wait,
+            ..RefinerOptions::default()
+        };
+        let model = VqModel::new(&cfg, 3, &device).expect("model");
+        let mut refiner = VqRefiner::new(model, cfg.clone(), options, device.clone());
+        let out = refiner.complete_at(&frame, &missing, Some(&k)).expect("refine");
+        let drawn = refiner.trace().missing_cells.clone();
+        let band_cells: Vec<usize> = (0..64).filter(|c| c % 8 < 2).collect();
+        let middle_cells: Vec<usize> =
+            (0..64).filter(|c| (3..6).contains(&(c % 8)) && (3..6).contains(&(c / 8))).collect();
+        let waits = bands_wait.unwrap_or(0) > 2;
+        assert!(band_cells.iter().all(|&c| drawn[c] != waits), "bands_wait {bands_wait:?}: band drawn {}", !waits);
+        assert!(middle_cells.iter().all(|&c| drawn[c]), "bands_wait {bands_wait:?}: the middle hole is always drawn");
+        for i in 0..(w * h) as usize {
+            let (x, y) = (i % w as usize, i / w as usize);
+            if band(x) {
+                assert_eq!(out.depth_m.data[i] == 0.0, waits, "bands_wait {bands_wait:?}: band pixel {x},{y} depth");
+            } else if middle(x, y) {
+                assert!(out.depth_m.data[i] > 0.0, "the middle hole's pixel {x},{y} has depth");
+            } else {
+                assert_eq!(out.colour.data[i], frame.colour.data[i], "observed pixels kept");
+            }
+        }
+    }
+}

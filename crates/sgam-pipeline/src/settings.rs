@@ -453,6 +453,34 @@ impl RefinerSettings {
     }
 }
 
+/// `--bands-wait`: how deep a hole at the frame's border must be before it is filled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BandsWait {
+    /// 3 cells for a code bank's holes, 0 for the model's own draws.
+    Auto,
+    /// This many cells for both (0: every hole is filled at once).
+    Cells(usize),
+}
+
+impl std::fmt::Display for BandsWait {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            BandsWait::Auto => f.write_str("auto"),
+            BandsWait::Cells(n) => write!(f, "{n}"),
+        }
+    }
+}
+
+impl std::str::FromStr for BandsWait {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "auto" => Ok(BandsWait::Auto),
+            _ => s.parse().map(BandsWait::Cells).map_err(|_| format!("{s:?} is neither auto nor a number of cells")),
+        }
+    }
+}
+
 /// How the learned refiner draws the missing latent cells.
 #[derive(Debug, Clone, PartialEq, Args)]
 pub struct SamplingSettings {
@@ -495,6 +523,13 @@ pub struct SamplingSettings {
     /// one place. 0 = one piece per hole, as before (vertical stripes on Google Earth seeds).
     #[arg(long, default_value_t = DEFAULT_QUILT_TILE)]
     pub quilt_tile: usize,
+    /// A hole along the frame's border that reaches fewer than N latent cells (8 px each) into
+    /// the frame waits: it keeps a provisional colour and no depth, nothing is fused there, and
+    /// it widens step by step until a whole object fits, instead of committing a sliver of one
+    /// that the next step must continue. auto: 3 for a bank's holes, 0 (fill at once) for the
+    /// model's own draws, where waiting grew larger mounds (docs/MODEL.md, session 29).
+    #[arg(long, default_value_t = BandsWait::Auto, value_name = "CELLS|auto")]
+    pub bands_wait: BandsWait,
     /// Run seed (sampling in the refiner): another seed grows another world.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -510,6 +545,7 @@ impl Default for SamplingSettings {
             regenerate_observed: false,
             whole_objects: false,
             quilt_tile: DEFAULT_QUILT_TILE,
+            bands_wait: BandsWait::Auto,
             seed: 0,
         }
     }
@@ -523,6 +559,9 @@ impl SamplingSettings {
         in_range("--within-temperature", self.within_temperature, 0.0..=100.0)?;
         in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
         in_range("--quilt-tile", self.quilt_tile, 0..=64)?;
+        if let BandsWait::Cells(n) = self.bands_wait {
+            in_range("--bands-wait", n, 0..=16)?;
+        }
         Ok(())
     }
 
@@ -536,6 +575,10 @@ impl SamplingSettings {
             within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
             whole_objects: self.whole_objects,
             quilt_tile: self.quilt_tile,
+            bands_wait: match self.bands_wait {
+                BandsWait::Auto => None,
+                BandsWait::Cells(n) => Some(n),
+            },
             ..Default::default()
         }
     }
@@ -921,6 +964,25 @@ mod tests {
     struct Cli {
         #[command(flatten)]
         run: RunSettings,
+    }
+
+    #[test]
+    fn bands_wait_is_auto_or_a_number_of_cells_and_reaches_the_refiner() {
+        let options = |args: &[&str]| {
+            let mut v = vec!["sgam"];
+            v.extend_from_slice(args);
+            let s = Cli::try_parse_from(v).map_err(|e| e.to_string())?.run.sampling;
+            s.validate().map_err(|e| e.to_string())?;
+            Ok::<_, String>(s.refiner_options().bands_wait)
+        };
+        assert_eq!(options(&[]), Ok(None), "auto: the refiner picks per completion");
+        assert_eq!(options(&["--bands-wait", "auto"]), Ok(None));
+        assert_eq!(options(&["--bands-wait", "0"]), Ok(Some(0)));
+        assert_eq!(options(&["--bands-wait", "5"]), Ok(Some(5)));
+        for bad in ["17", "x", "2.5"] {
+            let e = options(&["--bands-wait", bad]).expect_err(bad);
+            assert!(e.contains("--bands-wait"), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -147,7 +147,16 @@ impl WorldArgs {
             }
             // the bank's bytes name it, like the weights
             // (its worlds are 256 px synthetic ones: the bundled bank fits)
-            match &r.bank.resolve(true, r.model.is_none()) {
+            let bank = r.bank.resolve(true, r.model.is_none());
+            // worlds grown before --bands-wait existed: a bank's holes waited below 3 cells,
+            // the model's own draws never
+            let banked = !matches!(bank, sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto);
+            if let sgam_pipeline::settings::BandsWait::Cells(n) = s.bands_wait {
+                if n != if banked { sgam_model::refiner::DEFAULT_BANDS_WAIT } else { 0 } {
+                    label.push_str(&format!("-bw{n}"));
+                }
+            }
+            match &bank {
                 sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto => {}
                 sgam_pipeline::BankSpec::Bundled => {
                     label.push_str(&format!("-bank{:08x}", sgam_pipeline::bank::bank_id(sgam_pipeline::BUNDLED_BANK)))
@@ -369,7 +378,6 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
     let gf: Vec<Vec<f32>> = results.iter().flat_map(|r| r.gen_features.clone()).collect();
     let rf: Vec<Vec<f32>> = results.iter().flat_map(|r| r.ref_features.clone()).collect();
     let kid = sgam_metrics::kid::kid(&gf, &rf);
-    let ratio = |a: f64, b: f64| if b.abs() > 0.0 { a / b } else { f64::NAN };
     let step_ms: Vec<f64> = results.iter().map(|r| r.step_ms).collect();
     let loop_psnr: Vec<f64> = results.iter().map(|r| r.loop_psnr_ssim.0.min(99.0)).collect();
     let loop_ssim: Vec<f64> = results.iter().map(|r| r.loop_psnr_ssim.1).collect();
@@ -386,27 +394,36 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "top_k": args.sampling.top_k,
         "within_temperature": args.sampling.within_temperature,
         "generated": gp, "oracle": op,
-        "ratio_to_oracle": {
-            "objects_per_100m2": ratio(gp.objects_per_100m2, op.objects_per_100m2),
-            "median_object_area": ratio(gp.median_object_area_m2, op.median_object_area_m2),
-            "p90_object_area": ratio(gp.p90_object_area_m2, op.p90_object_area_m2),
-            "object_saturation": ratio(gp.object_saturation, op.object_saturation),
-            "ground_rms": ratio(gp.ground_rms_mm, op.ground_rms_mm),
-            "compact_object_share": ratio(
-                gp.object_shape.compact_share.map_or(f64::NAN, f64::from),
-                op.object_shape.compact_share.map_or(f64::NAN, f64::from),
-            ),
-        },
+        "ratio_to_oracle": ratios_to_oracle(&gp, &op),
         "scene": scene, "regions": { "generated": gen_regions.len(), "oracle": ref_regions.len(), "size_m": args.region_size },
         "kid": kid, "kid_frames": { "generated": gf.len(), "oracle": rf.len() },
         "per_seed": results.iter().enumerate().map(|(i, r)| json!({
             "seed_scene": args.first_seed + i as u64, "generated": r.generated, "oracle": r.oracle,
+            "ratio_to_oracle": ratios_to_oracle(
+                &PooledStats::of(std::slice::from_ref(&r.generated)),
+                &PooledStats::of(std::slice::from_ref(&r.oracle)),
+            ),
         })).collect::<Vec<_>>(),
         "loop": { "steps": crate::eval_grow::LOOP_STEPS, "psnr": mean(&loop_psnr), "ssim": mean(&loop_ssim) },
         "step_ms_median": sgam_metrics::median(&step_ms).unwrap_or(0.0),
         "out": root.display().to_string(),
         "wall_s": started.elapsed().as_secs_f64(),
     }))
+}
+
+/// The generated world's statistics over the oracle's (NaN where the oracle's is 0): pooled
+/// over every scene, or of one scene's world (a pool of one).
+fn ratios_to_oracle(g: &PooledStats, o: &PooledStats) -> serde_json::Value {
+    let ratio = |a: f64, b: f64| if b.abs() > 0.0 { a / b } else { f64::NAN };
+    let compact = |s: &PooledStats| s.object_shape.compact_share.map_or(f64::NAN, f64::from);
+    json!({
+        "objects_per_100m2": ratio(g.objects_per_100m2, o.objects_per_100m2),
+        "median_object_area": ratio(g.median_object_area_m2, o.median_object_area_m2),
+        "p90_object_area": ratio(g.p90_object_area_m2, o.p90_object_area_m2),
+        "object_saturation": ratio(g.object_saturation, o.object_saturation),
+        "ground_rms": ratio(g.ground_rms_mm, o.ground_rms_mm),
+        "compact_object_share": ratio(compact(g), compact(o)),
+    })
 }
 
 #[cfg(test)]

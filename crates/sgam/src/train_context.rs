@@ -59,9 +59,14 @@ pub struct ContextArgs {
     pub steps_per_run: Vec<usize>,
     /// Take the recorded pairs of another run folder (recorded with the same --pairs,
     /// --val-pairs, --crop, --scenes, --steps-per-run, --seed and --closed-loop) instead of
-    /// recording them: ablations on the same data, at once.
+    /// recording them: ablations on the same data, at once. Closed-loop pairs must have been
+    /// recorded by this run's starting model (--model), unless --pairs-from-any-model.
     #[arg(long, value_name = "RUN")]
     pub pairs_from: Option<PathBuf>,
+    /// With --pairs-from: take closed-loop pairs whichever model recorded them, e.g. to train a
+    /// context of another size (--dim, --layers) on exactly the pairs another run trained on.
+    #[arg(long, requires = "pairs_from")]
+    pub pairs_from_any_model: bool,
     /// Share of the training pairs' generator runs (0-1) that grow their map with the starting
     /// model's own completions (generation's default sampling) instead of the truth: the
     /// guidance then holds the model's earlier inventions, as in generation, and the target is
@@ -211,6 +216,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             options: sgam_pipeline::settings::SamplingSettings::default().refiner_options(),
         }),
         pairs_from: a.pairs_from.as_deref(),
+        any_recorder: a.pairs_from_any_model,
     };
     let record = |n: usize, stream: u64, what: &str| -> Result<Vec<ContextPair>> {
         let pairs =

@@ -119,6 +119,8 @@ pub(crate) struct PairSpec<'a> {
     /// Another run folder whose recorded pairs (same options) this run takes instead of
     /// recording them (`--pairs-from`).
     pub pairs_from: Option<&'a std::path::Path>,
+    /// Pairs recorded by any closed-loop model are taken (`--pairs-from-any-model`).
+    pub any_recorder: bool,
 }
 
 /// The options a pair cache was recorded with (named by the errors when they differ).
@@ -156,7 +158,7 @@ pub(crate) fn recorded_pairs(
         closed_loop_steps: closed_loop.map_or(1.0, |c| c.steps),
         // a resumed run's pairs were recorded with its starting model, not the weights it
         // resumes with: any model's (the other options still must match)
-        recorded_with: recorded_with.filter(|_| !resuming),
+        recorded_with: recorded_with.filter(|_| !resuming && !spec.any_recorder),
     };
     let path = spec.run.join(format!("pairs-{stream}.bin"));
     if let (false, Some(dir)) = (path.exists(), spec.pairs_from) {
@@ -324,6 +326,7 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         seed: a.common.seed,
         closed_loop: None,
         pairs_from: a.pairs_from.as_deref(),
+        any_recorder: false,
     };
     let record = |n: usize, stream: u64, what: &str| {
         recorded_pairs(&spec, n, stream, what, (&target_model, &target_config), resuming)
@@ -416,4 +419,22 @@ pub fn run(a: &SamplerArgs) -> Result<()> {
         a.common.run.join("ckpt/model.safetensors").display()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::validate_steps_per_run;
+
+    #[test]
+    fn a_bad_length_anywhere_in_a_mix_is_refused_by_name_and_value() {
+        assert!(validate_steps_per_run(&[40]).is_ok());
+        assert!(validate_steps_per_run(&[40, 40, 120]).is_ok());
+        assert!(validate_steps_per_run(&[1, 1000]).is_ok());
+        for (mix, bad) in [(vec![40, 0], "0"), (vec![0, 40], "0"), (vec![40, 40, 1001], "1001")] {
+            let e = validate_steps_per_run(&mix).expect_err("a bad length is refused").to_string();
+            assert!(e.contains("--steps-per-run") && e.contains(bad), "{mix:?}: {e}");
+        }
+        let e = validate_steps_per_run(&[]).expect_err("no length").to_string();
+        assert!(e.contains("--steps-per-run"), "{e}");
+    }
 }

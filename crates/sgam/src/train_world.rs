@@ -167,12 +167,7 @@ fn world_line(
 ) -> serde_json::Value {
     let (g, o) = (&world["generated"], &world["oracle"]);
     let over = world["per_seed"].as_array().map_or(0, |runs| {
-        runs.iter()
-            .filter(|r| {
-                let p90 = |w: &serde_json::Value| w["p90_object_area_m2"].as_f64();
-                matches!((p90(&r["generated"]), p90(&r["oracle"])), (Some(g), Some(o)) if o > 0.0 && g > 2.0 * o)
-            })
-            .count()
+        runs.iter().filter(|r| r["ratio_to_oracle"]["p90_object_area"].as_f64().is_some_and(|x| x > 2.0)).count()
     });
     json!({
         "step": step,

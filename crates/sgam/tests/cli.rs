@@ -258,6 +258,15 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
         assert_eq!(out.status.success(), takes, "{name}: {err}");
         assert!(takes || err.contains("closed-loop --model"), "{err}");
     }
+    // ... unless told to take them from any model (a context of another size on the same pairs)
+    let dir = tmp.path().join("ctx-any");
+    let mut e: Vec<&str> = args("1").into_iter().map(|x| if x == r { dir.to_str().unwrap() } else { x }).collect();
+    e.extend(["--closed-loop", "1", "--pairs-from", closed.to_str().unwrap(), "--pairs-from-any-model"]);
+    let layers = e.iter().position(|x| *x == "--layers").unwrap();
+    e[layers + 1] = "2";
+    let err = ok(&e);
+    assert!(err.contains("taken from") && !err.contains("recording"), "{err}");
+    assert_eq!(std::fs::read(dir.join("pairs-1.bin")).unwrap(), std::fs::read(closed.join("pairs-1.bin")).unwrap());
 }
 
 #[test]

@@ -31,6 +31,15 @@ fn the_oracle_judged_against_itself_is_identical_and_the_null_fill_is_not() {
     assert_eq!(n["oracle"], v["oracle"], "the oracle world is grown once and reused");
     assert_ne!(n["generated"], n["oracle"]);
     assert!(n["kid"].as_f64().unwrap() > kid_self, "null KID {} vs oracle {kid_self}", n["kid"]);
+    // each seed's own ratios to its oracle; one seed pooled is that seed
+    let per_seed = &n["per_seed"][0];
+    let (g, o) = (&per_seed["generated"], &per_seed["oracle"]);
+    let area = |w: &serde_json::Value| w["new_area_m2"].as_f64().unwrap();
+    let density = |w: &serde_json::Value| w["objects"].as_f64().unwrap() / area(w) * 100.0;
+    let want = density(g) / density(o);
+    let got = per_seed["ratio_to_oracle"]["objects_per_100m2"].as_f64().unwrap();
+    assert!((got - want).abs() < 1e-6 * want.abs().max(1.0), "per seed {got} vs {want}: {per_seed}");
+    assert_eq!(per_seed["ratio_to_oracle"], n["ratio_to_oracle"], "one seed pooled is that seed");
     // the null's world is kept under its label (`null`, plus `-g<M>` with the ground prior)
     let seed_dir = std::path::Path::new(out).join("seed-1000000");
     let null_worlds: Vec<_> = std::fs::read_dir(&seed_dir)

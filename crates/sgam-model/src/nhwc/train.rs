@@ -871,24 +871,14 @@ fn tn_columns<const R: usize, const V: usize>(
 }
 
 /// What earlier blocks summed into output rows `r..r + R`, vectors `v0..v0 + V` (zero before
-/// the first block; lanes past `cout` zero).
+/// the first block, whose `k0` is 0).
 #[inline(always)]
 fn tn_load<const R: usize, const V: usize>(w: &ConvW, r: usize, v0: usize, k0: usize, out: &[f32]) -> [[f32x16; V]; R] {
-    let mut acc = [[f32x16::ZERO; V]; R];
     if k0 == 0 {
-        return acc;
+        [[f32x16::ZERO; V]; R]
+    } else {
+        w.load(r, v0, out)
     }
-    for (dr, vecs) in acc.iter_mut().enumerate() {
-        let base = (r + dr) * w.cout;
-        for (v, vec) in vecs.iter_mut().enumerate() {
-            let c0 = (v0 + v) * LANES;
-            let n = LANES.min(w.cout - c0);
-            let mut lanes = [0.0f32; LANES];
-            lanes[..n].copy_from_slice(&out[base + c0..base + c0 + n]);
-            *vec = f32x16::new(lanes);
-        }
-    }
-    acc
 }
 
 /// `R` output rows from `i` x `V` vectors of output columns from `v0`, summed over rows
