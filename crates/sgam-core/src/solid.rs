@@ -61,25 +61,62 @@ pub fn object_thickness(
         return out;
     }
     let fx = camera.intrinsics.fx;
+    let lo = cfg.min_thickness_m.min(cfg.max_thickness_m);
+    let mut depths = Vec::new();
+    for members in object_groups(frame, camera, plane, cfg.min_height_m, cfg.max_depth_step) {
+        if !members.iter().any(|&i| missing[i]) {
+            continue;
+        }
+        depths.clear();
+        depths.extend(members.iter().map(|&i| depth[i]));
+        let mid = depths.len() / 2;
+        let median = *depths.select_nth_unstable_by(mid, f32::total_cmp).1;
+        let nearest = depths.iter().copied().fold(f32::INFINITY, f32::min);
+        let (u0, u1) = members.iter().fold((usize::MAX, 0), |(a, b), &i| (a.min(i % w), b.max(i % w)));
+        let width = ((u1 - u0 + 1) as f32 * median / fx).clamp(lo, cfg.max_thickness_m);
+        for &i in &members {
+            let t = nearest + width - depth[i];
+            if missing[i] && t >= lo {
+                out[i] = t;
+            }
+        }
+    }
+    out
+}
+
+/// The objects of `frame`: pixels with valid depth at least `min_height_m` above `plane`,
+/// grouped 4-connected where neighbouring depths differ by at most `max_depth_step` of the depth
+/// (each group's pixels in flood-fill order; groups in order of their first pixel).
+pub fn object_groups(
+    frame: &RgbdFrame,
+    camera: &Camera,
+    plane: &GroundPlane,
+    min_height_m: f32,
+    max_depth_step: f32,
+) -> Vec<Vec<usize>> {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    let depth = &frame.depth_m.data;
+    if depth.len() != w * h {
+        return Vec::new();
+    }
     let object: Vec<bool> = (0..w * h)
         .map(|i| {
             let d = depth[i];
             let uv = Vec2::new((i % w) as f32, (i / w) as f32);
-            is_valid_depth(d) && plane.height(camera.unproject_world(uv, d)) >= cfg.min_height_m
+            is_valid_depth(d) && plane.height(camera.unproject_world(uv, d)) >= min_height_m
         })
         .collect();
-    let joined = |a: usize, b: usize| object[b] && (depth[a] - depth[b]).abs() <= cfg.max_depth_step * depth[a];
-    let lo = cfg.min_thickness_m.min(cfg.max_thickness_m);
+    let joined = |a: usize, b: usize| object[b] && (depth[a] - depth[b]).abs() <= max_depth_step * depth[a];
     let mut seen = vec![false; w * h];
-    let (mut stack, mut members, mut depths) = (Vec::new(), Vec::new(), Vec::new());
+    let mut groups = Vec::new();
+    let mut stack = Vec::new();
     for start in 0..w * h {
         if !object[start] || seen[start] {
             continue;
         }
-        // one object: flood fill
         seen[start] = true;
         stack.push(start);
-        members.clear();
+        let mut members = Vec::new();
         while let Some(i) = stack.pop() {
             members.push(i);
             let (u, v) = (i % w, i / w);
@@ -102,24 +139,109 @@ pub fn object_thickness(
                 visit(i + w);
             }
         }
+        groups.push(members);
+    }
+    groups
+}
+
+/// Parameters of [`cap_invented_objects`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ObjectCapConfig {
+    /// Largest footprint an object with invented pixels may have, square metres (0 = no cap).
+    pub max_footprint_m2: f32,
+    /// Side of the ground cells a footprint is counted in, metres.
+    pub cell_m: f32,
+    /// Pixels at least this high above the ground plane are object pixels, metres.
+    pub min_height_m: f32,
+    /// Neighbouring pixels of one object differ in depth by less than this share of the depth.
+    pub max_depth_step: f32,
+}
+
+impl ObjectCapConfig {
+    /// Objects as [`SolidConfig::new`] groups them (10 cm above the plane, 5 % depth steps),
+    /// footprints counted in 10 cm cells (as `eval world` counts them).
+    pub fn new(max_footprint_m2: f32) -> Self {
+        Self { max_footprint_m2, cell_m: 0.1, min_height_m: 0.1, max_depth_step: 0.05 }
+    }
+}
+
+/// A guard rail on the size of invented objects. Invented colour at a frame's border is
+/// re-rendered at the next step and continued, step after step, into a mound many times the
+/// size of any object of the world. Every object of `frame` (observed pixels included: the
+/// part of a mound the map already holds) that has invented pixels (`missing`) and whose
+/// footprint (its pixels' ground cells, `cell_m` a side, counted on the plane) exceeds
+/// `max_footprint_m2` has its invented pixels put on the ground plane along their rays, in the
+/// colour of the frame's observed ground (the median of observed pixels on the ground; the
+/// pixel's own colour where there is none): the invented part of an oversized object becomes
+/// floor. Returns the number of pixels put on the ground.
+pub fn cap_invented_objects(
+    frame: &mut RgbdFrame,
+    missing: &[bool],
+    camera: &Camera,
+    plane: &GroundPlane,
+    cfg: &ObjectCapConfig,
+) -> usize {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    if cfg.max_footprint_m2 <= 0.0 || missing.len() != w * h || cfg.cell_m.is_nan() || cfg.cell_m <= 0.0 {
+        return 0;
+    }
+    let groups = object_groups(frame, camera, plane, cfg.min_height_m, cfg.max_depth_step);
+    // two axes in the plane: footprints are counted on the ground, whatever its tilt
+    let n = plane.normal.normalize_or_zero();
+    let a = n.any_orthonormal_vector();
+    let b = n.cross(a);
+    let cell_area = cfg.cell_m * cfg.cell_m;
+    let mut capped: Vec<usize> = Vec::new();
+    let mut cells = std::collections::HashSet::new();
+    for members in &groups {
         if !members.iter().any(|&i| missing[i]) {
             continue;
         }
-        depths.clear();
-        depths.extend(members.iter().map(|&i| depth[i]));
-        let mid = depths.len() / 2;
-        let median = *depths.select_nth_unstable_by(mid, f32::total_cmp).1;
-        let nearest = depths.iter().copied().fold(f32::INFINITY, f32::min);
-        let (u0, u1) = members.iter().fold((usize::MAX, 0), |(a, b), &i| (a.min(i % w), b.max(i % w)));
-        let width = ((u1 - u0 + 1) as f32 * median / fx).clamp(lo, cfg.max_thickness_m);
-        for &i in &members {
-            let t = nearest + width - depth[i];
-            if missing[i] && t >= lo {
-                out[i] = t;
+        cells.clear();
+        for &i in members {
+            let p = camera.unproject_world(Vec2::new((i % w) as f32, (i / w) as f32), frame.depth_m.data[i]);
+            cells.insert(((p.dot(a) / cfg.cell_m).floor() as i64, (p.dot(b) / cfg.cell_m).floor() as i64));
+        }
+        if cells.len() as f32 * cell_area > cfg.max_footprint_m2 {
+            capped.extend(members.iter().copied().filter(|&i| missing[i]));
+        }
+    }
+    if capped.is_empty() {
+        return 0;
+    }
+    // the observed ground's colour: per channel, the median over observed pixels on the plane
+    let mut ground: [Vec<f32>; 3] = Default::default();
+    for i in (0..w * h).filter(|&i| !missing[i]) {
+        let d = frame.depth_m.data[i];
+        let uv = Vec2::new((i % w) as f32, (i / w) as f32);
+        if is_valid_depth(d) && plane.height(camera.unproject_world(uv, d)).abs() < cfg.min_height_m {
+            for (c, v) in ground.iter_mut().zip(frame.colour.data[i]) {
+                c.push(v);
             }
         }
     }
-    out
+    let floor = (!ground[0].is_empty()).then(|| {
+        ground.map(|mut c| {
+            let mid = c.len() / 2;
+            *c.select_nth_unstable_by(mid, f32::total_cmp).1
+        })
+    });
+    let mut moved = 0;
+    for i in capped {
+        let uv = Vec2::new((i % w) as f32, (i / w) as f32);
+        match plane.depth_at(camera, uv) {
+            Some(d) => {
+                frame.depth_m.data[i] = d;
+                if let Some(f) = floor {
+                    frame.colour.data[i] = f;
+                }
+            }
+            // a ray that never meets the ground: nothing is fused there
+            None => frame.depth_m.data[i] = 0.0,
+        }
+        moved += 1;
+    }
+    moved
 }
 
 #[cfg(test)]
@@ -216,5 +338,85 @@ mod tests {
         // the minimum thickness applies to a single pixel
         let t = object_thickness(&f, &missing, &camera, &plane, &SolidConfig::new(1.5, 5.0));
         assert_eq!(t[(5 * w + 3) as usize], 1.5);
+    }
+
+    #[test]
+    fn the_invented_part_of_an_oversized_object_becomes_floor_and_a_small_one_stays() {
+        let (w, h) = (64, 32);
+        let (camera, plane) = setup(w, h);
+        let mut f = frame(w, h, f32::NAN);
+        // the observed ground in row 31, grey
+        let ground_row = 31;
+        let ray_y = (ground_row as f32 - 16.0) / 100.0;
+        for u in 0..w {
+            *f.depth_m.at_mut(u, ground_row) = 2.0 / ray_y;
+            *f.colour.at_mut(u, ground_row) = [0.3, 0.3, 0.3];
+        }
+        // a wide object (60 px = 6 m at 10 m; rows 2..=6 stepping 4 cm in depth: 3 ground
+        // cells deep, about 1.8 m2), its left half observed and its right half invented, and
+        // a small invented one (3 px) far from it in row 12, 12 m away
+        for v in 2..=6 {
+            for u in 0..60 {
+                *f.depth_m.at_mut(u, v) = 10.0 + 0.04 * (6 - v) as f32;
+                *f.colour.at_mut(u, v) = [1.0, 0.0, 0.0];
+            }
+        }
+        for u in 0..3 {
+            *f.depth_m.at_mut(u, 12) = 12.0;
+            *f.colour.at_mut(u, 12) = [0.0, 0.0, 1.0];
+        }
+        let mut missing = vec![false; (w * h) as usize];
+        for v in 2..=6 {
+            for u in 30..60 {
+                missing[(v * w + u) as usize] = true;
+            }
+        }
+        for u in 0..3 {
+            missing[(12 * w + u) as usize] = true;
+        }
+        let at =
+            |f: &RgbdFrame, u: u32, v: u32| (f.depth_m.data[(v * w + u) as usize], f.colour.data[(v * w + u) as usize]);
+        // no cap, or a cap above the wide object's footprint: nothing moves
+        for cap in [0.0, 5.0] {
+            let mut g = f.clone();
+            assert_eq!(cap_invented_objects(&mut g, &missing, &camera, &plane, &ObjectCapConfig::new(cap)), 0);
+            assert!(g.depth_m.data.iter().zip(&f.depth_m.data).all(|(a, b)| a.to_bits() == b.to_bits()), "cap {cap}");
+        }
+        let mut g = f.clone();
+        let moved = cap_invented_objects(&mut g, &missing, &camera, &plane, &ObjectCapConfig::new(1.0));
+        assert_eq!(moved, 5 * 30, "the wide object's invented pixels, not the small one's");
+        for v in 2..=6 {
+            // observed: kept
+            assert_eq!(at(&g, 10, v), at(&f, 10, v));
+            // invented: on the plane (these rows look above the horizon: the ray never meets
+            // it, so nothing is fused there)
+            assert_eq!(at(&g, 40, v).0, 0.0, "row {v}");
+        }
+        assert_eq!(at(&g, 1, 12), at(&f, 1, 12), "the small invented object stays");
+        // below the horizon an oversized object's invented pixels land on the plane in the
+        // observed ground's colour
+        let mut f2 = frame(w, h, f32::NAN);
+        for u in 0..w {
+            *f2.depth_m.at_mut(u, ground_row) = 2.0 / ray_y;
+            *f2.colour.at_mut(u, ground_row) = [0.3, 0.3, 0.3];
+        }
+        // rows 20..=24 look down at 0.04-0.08: the ground is 25-50 m away; an object 1 m high
+        // at 10-11 m
+        let mut missing2 = vec![false; (w * h) as usize];
+        for v in 20..=24 {
+            for u in 0..60 {
+                *f2.depth_m.at_mut(u, v) = 10.0 + 0.2 * (24 - v) as f32;
+                *f2.colour.at_mut(u, v) = [1.0, 0.0, 0.0];
+                missing2[(v * w + u) as usize] = u >= 30;
+            }
+        }
+        let moved = cap_invented_objects(&mut f2, &missing2, &camera, &plane, &ObjectCapConfig::new(1.0));
+        assert_eq!(moved, 5 * 30);
+        for v in 20..=24 {
+            let (d, c) = at(&f2, 45, v);
+            let want = plane.depth_at(&camera, Vec2::new(45.0, v as f32)).unwrap();
+            assert!((d - want).abs() < 1e-4 && c == [0.3, 0.3, 0.3], "row {v}: {d} vs {want}, {c:?}");
+            assert_eq!(at(&f2, 10, v).1, [1.0, 0.0, 0.0], "observed pixels keep their colour");
+        }
     }
 }

@@ -93,6 +93,10 @@ pub struct RunConfig {
     /// ([`GeneratorConfig::solid_max_m`]); 0 = off (runs written before it existed read as 0).
     #[serde(default)]
     pub solid_max_m: f32,
+    /// Guard rail on invented objects' footprints, m² ([`GeneratorConfig::max_object_m2`]);
+    /// 0 = off (runs written before it existed read as 0).
+    #[serde(default)]
+    pub max_object_m2: f32,
     /// Bound on the map's memory, MB: beyond it, far super-blocks go to tiles on disk
     /// ([`crate::tiles`]). 0 = no bound (runs written before it existed read as 0).
     #[serde(default)]
@@ -113,6 +117,7 @@ impl RunConfig {
             snap_flying_pixels: self.snap_flying_pixels,
             carve_free_space: self.carve_free_space,
             solid_max_m: self.solid_max_m,
+            max_object_m2: self.max_object_m2,
             ..clevr_generator_config(self.run_seed)
         }
     }

@@ -6,7 +6,7 @@ use serde::{Deserialize, Serialize};
 use sgam_core::edges::{snap_flying_pixels, FlyingPixelConfig};
 use sgam_core::freespace::{carve_invented, FreeSpaceConfig};
 use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
-use sgam_core::solid::{object_thickness, SolidConfig};
+use sgam_core::solid::{cap_invented_objects, object_thickness, ObjectCapConfig, SolidConfig};
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
 
@@ -49,6 +49,10 @@ pub struct GeneratorConfig {
     /// twice the truncation up to this many metres ([`sgam_core::solid::object_thickness`], [`TsdfMap::integrate_behind`]);
     /// 0 = off (a one-view shell as thick as the truncation band).
     pub solid_max_m: f32,
+    /// Guard rail: an object with invented pixels whose footprint passes this many square
+    /// metres has its invented pixels put on the ground plane
+    /// ([`sgam_core::solid::cap_invented_objects`]); 0 = off.
+    pub max_object_m2: f32,
 }
 
 /// The loop's parameters for the CLEVR-Infinite world: the [`crate::seeds::CLEVR`] preset's voxels,
@@ -77,6 +81,7 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         snap_flying_pixels: false,
         carve_free_space: false,
         solid_max_m: 0.0,
+        max_object_m2: 0.0,
     }
 }
 
@@ -254,6 +259,12 @@ impl<R: Refiner> WorldGenerator<R> {
                     ..GroundSnapConfig::new(tolerance_m, self.config.tsdf.depth_max_m)
                 };
                 snap_to_ground(&mut frame, &guidance.missing, camera, &plane, &cfg);
+            }
+        }
+        if self.config.max_object_m2 > 0.0 {
+            if let Some(plane) = self.ground_plane()? {
+                let cfg = ObjectCapConfig::new(self.config.max_object_m2);
+                cap_invented_objects(&mut frame, &guidance.missing, camera, &plane, &cfg);
             }
         }
         timings.refine_ms = t.lap();

@@ -56,6 +56,8 @@ pub const DEFAULT_GROUND_SNAP_M: f32 = 1.0;
 pub const DEFAULT_GROUND_FLATTEN_M: f32 = 0.3;
 /// Default of `--solid-objects`, metres (0 = off).
 pub const DEFAULT_SOLID_OBJECTS_M: f32 = 0.0;
+/// Default of `--max-object-m2`, square metres (0 = off).
+pub const DEFAULT_MAX_OBJECT_M2: f32 = 0.0;
 /// Default of `--flying-pixels`.
 pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
 /// Default of `--free-space`.
@@ -622,6 +624,15 @@ pub struct InventedPixelSettings {
     /// seen yet, never under the ground. Needs the ground prior's plane.
     #[arg(long, default_value_t = DEFAULT_SOLID_OBJECTS_M)]
     pub solid_objects: f32,
+    /// Guard rail on invented objects, square metres (0 = off): an object of the completed
+    /// frame (pixels 10 cm or more above the ground plane, connected; the part the map already
+    /// holds included) with invented pixels and a footprint past this has its invented pixels
+    /// put on the ground plane in the observed ground's colour. Invented colour at a frame's
+    /// border is re-rendered and continued step after step into a mound many objects wide; this
+    /// stops it growing. CLEVR-Infinite's objects: median about 2 m², 90th percentile 4-6 m²
+    /// (10 cm cells, as `eval world` counts them). Needs the ground prior's plane.
+    #[arg(long, default_value_t = DEFAULT_MAX_OBJECT_M2, value_name = "M2")]
+    pub max_object_m2: f32,
 }
 
 impl Default for InventedPixelSettings {
@@ -632,6 +643,7 @@ impl Default for InventedPixelSettings {
             flying_pixels: DEFAULT_FLYING_PIXELS,
             free_space: DEFAULT_FREE_SPACE,
             solid_objects: DEFAULT_SOLID_OBJECTS_M,
+            max_object_m2: DEFAULT_MAX_OBJECT_M2,
         }
     }
 }
@@ -641,7 +653,8 @@ impl InventedPixelSettings {
     pub fn validate(&self) -> Result<()> {
         in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
         in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap.max(0.0))?;
-        in_range("--solid-objects", self.solid_objects, 0.0..=10.0)
+        in_range("--solid-objects", self.solid_objects, 0.0..=10.0)?;
+        in_range("--max-object-m2", self.max_object_m2, 0.0..=10_000.0)
     }
 }
 
@@ -937,6 +950,7 @@ impl RunSettings {
             snap_flying_pixels: invents && p.flying_pixels == FlyingPixels::Snap,
             carve_free_space: invents && p.free_space == FreeSpace::Carve,
             solid_max_m: if invents { p.solid_objects } else { 0.0 },
+            max_object_m2: if invents { p.max_object_m2 } else { 0.0 },
             outputs: self.outputs.settings(),
             max_map_mb: m.max_map_mb,
         })
@@ -1022,9 +1036,16 @@ mod tests {
         let mut oracle = RunSettings::clevr(7);
         oracle.refiner = RefinerSettings::kind(RefinerKind::Oracle);
         oracle.invented.solid_objects = 1.5;
+        oracle.invented.max_object_m2 = 6.0;
         let c = oracle.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
         assert_eq!(c.solid_max_m, 0.0, "the oracle's objects are the true world's");
+        assert_eq!(c.max_object_m2, 0.0, "the oracle's objects are never capped");
+        // the guard rail reaches the model's generator
+        let mut capped = RunSettings::clevr(7);
+        capped.invented.max_object_m2 = 6.0;
+        assert_eq!(capped.resolve().unwrap().generator_config().max_object_m2, 6.0);
+        assert_eq!(RunConfig::clevr(7).generator_config().max_object_m2, DEFAULT_MAX_OBJECT_M2);
         // `keep` turns each filter off for the model
         let mut keep = RunSettings::clevr(7);
         keep.invented = InventedPixelSettings {
@@ -1033,6 +1054,7 @@ mod tests {
             flying_pixels: FlyingPixels::Keep,
             free_space: FreeSpace::Keep,
             solid_objects: 0.0,
+            max_object_m2: 0.0,
         };
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));

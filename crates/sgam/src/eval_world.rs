@@ -192,6 +192,9 @@ impl WorldArgs {
             if p.solid_objects > 0.0 {
                 label.push_str(&format!("-solid{}", p.solid_objects));
             }
+            if p.max_object_m2 > 0.0 {
+                label.push_str(&format!("-cap{}", p.max_object_m2));
+            }
         }
         if self.map.no_map {
             label.push_str("-nomap");
@@ -391,6 +394,7 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "flying_pixels": args.invented.flying_pixels,
         "free_space": args.invented.free_space,
         "solid_objects_m": args.invented.solid_objects,
+        "max_object_m2": args.invented.max_object_m2,
         "top_k": args.sampling.top_k,
         "within_temperature": args.sampling.within_temperature,
         "generated": gp, "oracle": op,
