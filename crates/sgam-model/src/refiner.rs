@@ -1187,14 +1187,6 @@ fn band_pixel_distance(
     }
 }
 
-/// Copies into the missing pixels of `out` the pixels behind each quilted cell's source
-/// (`[cell, bank frame, bank cell]`, [`BankFill::sources`], draw after draw as `draws` count
-/// them, each moved by its draw's pixel offset): an `f x f` block of colour and depth from the
-/// bank's base frame. Blocks past `out`'s edges (padding) are cut. A hole's depths (all its
-/// tiles') are scaled to its surroundings: by the median ratio of the observed depth around it
-/// to the source's depth at the same places (the cells next to the hole's and their sources'
-/// neighbours), so a piece of the seed taken from nearer or farther sits at the depth of the
-/// surface it continues. Without `colour` only the depth is pasted.
 /// Takes the depth off the missing pixels of latent `cells` (`cols` per row, `f` pixels a side)
 /// of `out`: a hole that waits keeps a provisional colour, and nothing is fused there.
 fn drop_depth(out: &mut RgbdFrame, missing: &[bool], cells: &[usize], cols: usize, f: usize) {
@@ -1211,6 +1203,14 @@ fn drop_depth(out: &mut RgbdFrame, missing: &[bool], cells: &[usize], cols: usiz
     }
 }
 
+/// Copies into the missing pixels of `out` the pixels behind each quilted cell's source
+/// (`[cell, bank frame, bank cell]`, [`BankFill::sources`], draw after draw as `draws` count
+/// them, each moved by its draw's pixel offset): an `f x f` block of colour and depth from the
+/// bank's base frame. Blocks past `out`'s edges (padding) are cut. A hole's depths (all its
+/// tiles') are scaled to its surroundings: by the median ratio of the observed depth around it
+/// to the source's depth at the same places (the cells next to the hole's and their sources'
+/// neighbours), so a piece of the seed taken from nearer or farther sits at the depth of the
+/// surface it continues. Without `colour` only the depth is pasted.
 fn paste_sources(
     out: &mut RgbdFrame,
     missing: &[bool],
