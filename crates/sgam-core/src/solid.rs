@@ -188,6 +188,9 @@ pub fn cap_invented_objects(
     let groups = object_groups(frame, camera, plane, cfg.min_height_m, cfg.max_depth_step);
     // two axes in the plane: footprints are counted on the ground, whatever its tilt
     let n = plane.normal.normalize_or_zero();
+    if n == glam::Vec3::ZERO {
+        return 0;
+    }
     let a = n.any_orthonormal_vector();
     let b = n.cross(a);
     let cell_area = cfg.cell_m * cfg.cell_m;
@@ -376,6 +379,9 @@ mod tests {
         }
         let at =
             |f: &RgbdFrame, u: u32, v: u32| (f.depth_m.data[(v * w + u) as usize], f.colour.data[(v * w + u) as usize]);
+        // a degenerate plane (no normal) moves nothing
+        let flat = GroundPlane { normal: glam::Vec3::ZERO, ..plane };
+        assert_eq!(cap_invented_objects(&mut f.clone(), &missing, &camera, &flat, &ObjectCapConfig::new(1.0)), 0);
         // no cap, or a cap above the wide object's footprint: nothing moves
         for cap in [0.0, 5.0] {
             let mut g = f.clone();
