@@ -63,7 +63,8 @@ pub fn object_thickness(
     let fx = camera.intrinsics.fx;
     let lo = cfg.min_thickness_m.min(cfg.max_thickness_m);
     let mut depths = Vec::new();
-    for members in object_groups(frame, camera, plane, cfg.min_height_m, cfg.max_depth_step) {
+    let heights = pixel_heights(frame, camera, plane);
+    for members in object_groups(frame, &heights, cfg.min_height_m, cfg.max_depth_step) {
         if !members.iter().any(|&i| missing[i]) {
             continue;
         }
@@ -84,28 +85,37 @@ pub fn object_thickness(
     out
 }
 
-/// The objects of `frame`: pixels with valid depth at least `min_height_m` above `plane`,
+/// Per pixel of `frame`, the height of its point above `plane`, metres (NaN without valid
+/// depth).
+pub fn pixel_heights(frame: &RgbdFrame, camera: &Camera, plane: &GroundPlane) -> Vec<f32> {
+    let w = frame.width() as usize;
+    frame
+        .depth_m
+        .data
+        .iter()
+        .enumerate()
+        .map(|(i, &d)| {
+            let uv = Vec2::new((i % w) as f32, (i / w) as f32);
+            if is_valid_depth(d) {
+                plane.height(camera.unproject_world(uv, d))
+            } else {
+                f32::NAN
+            }
+        })
+        .collect()
+}
+
+/// The objects of `frame`: pixels whose height ([`pixel_heights`]) is at least `min_height_m`,
 /// grouped 4-connected where neighbouring depths differ by at most `max_depth_step` of the depth
 /// (each group's pixels in flood-fill order; groups in order of their first pixel).
-pub fn object_groups(
-    frame: &RgbdFrame,
-    camera: &Camera,
-    plane: &GroundPlane,
-    min_height_m: f32,
-    max_depth_step: f32,
-) -> Vec<Vec<usize>> {
+pub fn object_groups(frame: &RgbdFrame, heights: &[f32], min_height_m: f32, max_depth_step: f32) -> Vec<Vec<usize>> {
     let (w, h) = (frame.width() as usize, frame.height() as usize);
     let depth = &frame.depth_m.data;
-    if depth.len() != w * h {
+    if depth.len() != w * h || heights.len() != w * h {
         return Vec::new();
     }
-    let object: Vec<bool> = (0..w * h)
-        .map(|i| {
-            let d = depth[i];
-            let uv = Vec2::new((i % w) as f32, (i / w) as f32);
-            is_valid_depth(d) && plane.height(camera.unproject_world(uv, d)) >= min_height_m
-        })
-        .collect();
+    // (NaN, no valid depth, is never at least the minimum)
+    let object: Vec<bool> = heights.iter().map(|&z| z >= min_height_m).collect();
     let joined = |a: usize, b: usize| object[b] && (depth[a] - depth[b]).abs() <= max_depth_step * depth[a];
     let mut seen = vec![false; w * h];
     let mut groups = Vec::new();
@@ -185,7 +195,8 @@ pub fn cap_invented_objects(
     if cfg.max_footprint_m2 <= 0.0 || missing.len() != w * h || cfg.cell_m.is_nan() || cfg.cell_m <= 0.0 {
         return 0;
     }
-    let groups = object_groups(frame, camera, plane, cfg.min_height_m, cfg.max_depth_step);
+    let heights = pixel_heights(frame, camera, plane);
+    let groups = object_groups(frame, &heights, cfg.min_height_m, cfg.max_depth_step);
     // two axes in the plane: footprints are counted on the ground, whatever its tilt
     let n = plane.normal.normalize_or_zero();
     if n == glam::Vec3::ZERO {
@@ -215,9 +226,7 @@ pub fn cap_invented_objects(
     // the observed ground's colour: per channel, the median over observed pixels on the plane
     let mut ground: [Vec<f32>; 3] = Default::default();
     for i in (0..w * h).filter(|&i| !missing[i]) {
-        let d = frame.depth_m.data[i];
-        let uv = Vec2::new((i % w) as f32, (i / w) as f32);
-        if is_valid_depth(d) && plane.height(camera.unproject_world(uv, d)).abs() < cfg.min_height_m {
+        if heights[i].abs() < cfg.min_height_m {
             for (c, v) in ground.iter_mut().zip(frame.colour.data[i]) {
                 c.push(v);
             }
