@@ -399,10 +399,9 @@ impl VqRefiner {
         let sampler = (self.config.code_tau.is_some() || self.config.code_head)
             && matches!(sampling, Sampling::Temperature { .. });
         // the model's own draws: thin bands at the border wait (a bank's search defers its own)
-        let wait_cells = if sampler && !bank_fits && self.options.bands_wait.unwrap_or(0) > 0 {
-            crate::bank::thin_border_bands(&cells, ch, cw, self.options.bands_wait.unwrap_or(0))
-        } else {
-            Vec::new()
+        let wait_cells = match self.options.bands_wait {
+            Some(n) if n > 0 && sampler && !bank_fits => crate::bank::thin_border_bands(&cells, ch, cw, n),
+            _ => Vec::new(),
         };
         for &c in &wait_cells {
             cells[c] = false;
