@@ -3,17 +3,18 @@
 # never depends on it; run it the moment a session's `status` says a device is lent.
 #
 # Here, once per session (builds the wgpu trainer, fetches the Vulkan loader, picks the start):
-#   scripts/device-train.sh prepare [START.safetensors]   # default: the context candidate
+#   scripts/device-train.sh prepare [START.safetensors]   # default: the bundled model (with its context)
 # Then one device call (carry the two folders; the command ends by itself at BUDGET seconds):
 #   run(command="SEED=9 bash scripts/device-train.sh train 570", carry=[".device", ".gl"], timeout_s=600)
 # (a first call finds the machine cold: about 30 s to start; 570 s leaves the 15 minutes room for
 # one retry of a call that fails early; recording 10,000 pairs took 200 s of it in session 23)
 # Two runs share the GPU and one recording of the pairs (16 cores record 16 generator runs at
 # once): A continues START's context; B is a 4.6x larger context (256 wide, 6 blocks) from the
-# bundled model, the capacity ablation issue 26 asks for. At BUDGET both are stopped (their last
+# bundled model's autoencoder (the last one without a context, from git), the capacity ablation
+# issue 26 asks for. At BUDGET both are stopped (their last
 # checkpoints are whole: writes are atomic) and come back as $OUT/{a,b}.safetensors with their
 # val.jsonl and logs. Export with
-#   sgam train export FILES_AT/a.safetensors models/context-candidate.safetensors
+#   sgam train export FILES_AT/a.safetensors runs/a.safetensors
 # and judge them with `sgam eval world` before bundling.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -35,8 +36,9 @@ prepare)
   # shellcheck disable=SC2086
   apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libglvnd0 libegl1 libgl1 libglx0 \
     libopengl0 libgles2 >/dev/null)
-  cp "${2:-models/context-candidate.safetensors}" .device/start.safetensors
-  cp models/compact.safetensors .device/base.safetensors
+  cp "${2:-models/compact.safetensors}" .device/start.safetensors
+  # the bundled model before it took a context (session 30): B trains a new, larger context on it
+  git show a56ceaf:models/compact.safetensors >.device/base.safetensors
   du -sh .device .gl
   ;;
 train)

@@ -159,6 +159,10 @@ pub fn object_groups(frame: &RgbdFrame, heights: &[f32], min_height_m: f32, max_
 pub struct ObjectCapConfig {
     /// Largest footprint an object with invented pixels may have, square metres (0 = no cap).
     pub max_footprint_m2: f32,
+    /// Longest footprint an object with invented pixels may have, metres (0 = no cap): the
+    /// length along its footprint's principal axis, `sqrt(12 lambda_max)` of its cells'
+    /// covariance (a bar's length, a square's side, 1.73 r for a disk of radius r).
+    pub max_length_m: f32,
     /// Side of the ground cells a footprint is counted in, metres.
     pub cell_m: f32,
     /// Pixels at least this high above the ground plane are object pixels, metres.
@@ -171,7 +175,7 @@ impl ObjectCapConfig {
     /// Objects as [`SolidConfig::new`] groups them (10 cm above the plane, 5 % depth steps),
     /// footprints counted in 10 cm cells (as `eval world` counts them).
     pub fn new(max_footprint_m2: f32) -> Self {
-        Self { max_footprint_m2, cell_m: 0.1, min_height_m: 0.1, max_depth_step: 0.05 }
+        Self { max_footprint_m2, max_length_m: 0.0, cell_m: 0.1, min_height_m: 0.1, max_depth_step: 0.05 }
     }
 }
 
@@ -183,7 +187,9 @@ impl ObjectCapConfig {
 /// `max_footprint_m2` has its invented pixels put on the ground plane along their rays, in the
 /// colour of the frame's observed ground (the median of observed pixels on the ground; the
 /// pixel's own colour where there is none): the invented part of an oversized object becomes
-/// floor. Returns the number of pixels put on the ground.
+/// floor. With `max_length_m`, so does the invented part of an object whose footprint is
+/// longer than that (a streak that each step continues along the path stays under the area
+/// cap for long). Returns the number of pixels put on the ground.
 pub fn cap_invented_objects(
     frame: &mut RgbdFrame,
     missing: &[bool],
@@ -192,7 +198,8 @@ pub fn cap_invented_objects(
     cfg: &ObjectCapConfig,
 ) -> usize {
     let (w, h) = (frame.width() as usize, frame.height() as usize);
-    if cfg.max_footprint_m2 <= 0.0 || missing.len() != w * h || cfg.cell_m.is_nan() || cfg.cell_m <= 0.0 {
+    let (area_cap, length_cap) = (cfg.max_footprint_m2 > 0.0, cfg.max_length_m > 0.0);
+    if !(area_cap || length_cap) || missing.len() != w * h || cfg.cell_m.is_nan() || cfg.cell_m <= 0.0 {
         return 0;
     }
     let heights = pixel_heights(frame, camera, plane);
@@ -216,7 +223,8 @@ pub fn cap_invented_objects(
             let p = camera.unproject_world(Vec2::new((i % w) as f32, (i / w) as f32), frame.depth_m.data[i]);
             cells.insert(((p.dot(a) / cfg.cell_m).floor() as i64, (p.dot(b) / cfg.cell_m).floor() as i64));
         }
-        if cells.len() as f32 * cell_area > cfg.max_footprint_m2 {
+        let too_large = area_cap && cells.len() as f32 * cell_area > cfg.max_footprint_m2;
+        if too_large || (length_cap && footprint_length_m(&cells, cfg.cell_m) > cfg.max_length_m) {
             capped.extend(members.iter().copied().filter(|&i| missing[i]));
         }
     }
@@ -254,6 +262,29 @@ pub fn cap_invented_objects(
         moved += 1;
     }
     moved
+}
+
+/// The length of a footprint along its principal axis, metres: `sqrt(12 lambda_max)` of the
+/// covariance of its cells' centres (`cell_m` a side), the length of a uniform bar.
+fn footprint_length_m(cells: &std::collections::HashSet<(i64, i64)>, cell_m: f32) -> f32 {
+    let n = cells.len() as f64;
+    if n < 2.0 {
+        return cell_m;
+    }
+    let (sx, sy) = cells.iter().fold((0.0, 0.0), |(x, y), &(a, b)| (x + a as f64, y + b as f64));
+    let (mx, my) = (sx / n, sy / n);
+    let (mut xx, mut xy, mut yy) = (0.0, 0.0, 0.0);
+    for &(a, b) in cells {
+        let (dx, dy) = (a as f64 - mx, b as f64 - my);
+        xx += dx * dx;
+        xy += dx * dy;
+        yy += dy * dy;
+    }
+    let (xx, xy, yy) = (xx / n, xy / n, yy / n);
+    // the larger eigenvalue of [[xx, xy], [xy, yy]]
+    let half = 0.5 * (xx + yy);
+    let lambda = half + (0.25 * (xx - yy) * (xx - yy) + xy * xy).sqrt();
+    ((12.0 * lambda).sqrt() * cell_m as f64) as f32
 }
 
 #[cfg(test)]
@@ -353,6 +384,18 @@ mod tests {
     }
 
     #[test]
+    fn a_footprints_length_is_a_bars_length_a_squares_side_and_turns_with_it() {
+        let cells = |v: Vec<(i64, i64)>| v.into_iter().collect::<std::collections::HashSet<_>>();
+        let bar = cells((0..30).map(|x| (x, 0)).collect());
+        assert!((footprint_length_m(&bar, 0.1) - 3.0).abs() < 0.01, "{}", footprint_length_m(&bar, 0.1));
+        let diagonal = cells((0..30).map(|x| (x, x)).collect());
+        assert!((footprint_length_m(&diagonal, 0.1) - 3.0 * 2f32.sqrt()).abs() < 0.02);
+        let square = cells((0..20).flat_map(|x| (0..20).map(move |y| (x, y))).collect());
+        assert!((footprint_length_m(&square, 0.1) - 2.0).abs() < 0.01, "{}", footprint_length_m(&square, 0.1));
+        assert_eq!(footprint_length_m(&cells(vec![(3, 4)]), 0.1), 0.1);
+    }
+
+    #[test]
     fn the_invented_part_of_an_oversized_object_becomes_floor_and_a_small_one_stays() {
         let (w, h) = (64, 32);
         let (camera, plane) = setup(w, h);
@@ -397,6 +440,10 @@ mod tests {
             assert_eq!(cap_invented_objects(&mut g, &missing, &camera, &plane, &ObjectCapConfig::new(cap)), 0);
             assert!(g.depth_m.data.iter().zip(&f.depth_m.data).all(|(a, b)| a.to_bits() == b.to_bits()), "cap {cap}");
         }
+        // the wide object is a bar about 6 m long: a length cap alone stops it at 3 m, not at 8 m
+        let length = |m: f32| ObjectCapConfig { max_length_m: m, ..ObjectCapConfig::new(0.0) };
+        assert_eq!(cap_invented_objects(&mut f.clone(), &missing, &camera, &plane, &length(8.0)), 0);
+        assert_eq!(cap_invented_objects(&mut f.clone(), &missing, &camera, &plane, &length(3.0)), 5 * 30);
         let mut g = f.clone();
         let moved = cap_invented_objects(&mut g, &missing, &camera, &plane, &ObjectCapConfig::new(1.0));
         assert_eq!(moved, 5 * 30, "the wide object's invented pixels, not the small one's");

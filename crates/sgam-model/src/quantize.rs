@@ -135,7 +135,10 @@ fn draw_index_at(weights: &[f64], u01: f64) -> (usize, f64) {
 /// class is drawn; `within == temperature` is plain sampling at `temperature`; `within <= 0`
 /// takes the nearest code of the drawn class. Observed rows take the argmin. Returns the codes
 /// and, per row, the probability of the drawn code under this two-level distribution (1 for
-/// observed rows), the confidence iterative sampling commits by.
+/// observed rows), the confidence iterative sampling commits by. `within_bias` (row-major
+/// `[n, k]`, in `dist`'s units), when given, is added to each row for the draw within the class
+/// only: it moves which code of the class a cell takes, not how often the class is drawn
+/// ([`crate::refiner::RefinerOptions::hue_coherence`]).
 #[allow(clippy::too_many_arguments)]
 pub fn select_codes_by_class(
     dist: &[f32],
@@ -145,6 +148,7 @@ pub fn select_codes_by_class(
     temperature: f32,
     within: f32,
     plain: &[bool],
+    within_bias: Option<&[f32]>,
     rng: &mut ChaCha8Rng,
 ) -> (Vec<u32>, Vec<f32>) {
     let t = temperature.max(1e-12) as f64;
@@ -192,7 +196,10 @@ pub fn select_codes_by_class(
             let (pick, p_within) = if !draws_within {
                 (class_nearest[c].unwrap_or(nearest), 1.0)
             } else {
-                let weights: Vec<f64> = members[c].iter().map(|&j| (-(row[j] as f64 - cmin[c]) / tw).exp()).collect();
+                // the within-class draw may add a bias per code (the class's odds stay the row's)
+                let d = |j: usize| row[j] as f64 + within_bias.map_or(0.0, |b| b[i * k + j] as f64);
+                let low = members[c].iter().map(|&j| d(j)).fold(f64::INFINITY, f64::min);
+                let weights: Vec<f64> = members[c].iter().map(|&j| (-(d(j) - low) / tw).exp()).collect();
                 let (at, sum) = draw_index_at(&weights, uniforms[i][1]);
                 (
                     members[c].get(at).copied().unwrap_or(nearest),

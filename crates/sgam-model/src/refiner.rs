@@ -130,6 +130,13 @@ pub struct RefinerOptions {
     /// grew larger mounds there: docs/MODEL.md, session 29).
     #[serde(default)]
     pub bands_wait: Option<usize>,
+    /// Hue coherence of the context's draws, nats (0 = off): with two-level sampling, a missing
+    /// cell drawing a coloured code next to cells already coloured (observed, or drawn in an
+    /// earlier pass) pays up to this much for a code whose hue turns away from theirs
+    /// (`hue_coherence * (1 - cos angle) / 2`), in the draw within the class only, so an object
+    /// keeps one colour across its cells; how often cells start objects is unchanged.
+    #[serde(default)]
+    pub hue_coherence: f32,
 }
 
 /// [`RefinerOptions::bands_wait`] for a code bank's holes when not given (docs/MODEL.md, session
@@ -161,6 +168,7 @@ impl Default for RefinerOptions {
             whole_objects: false,
             quilt_tile: 0,
             bands_wait: None,
+            hue_coherence: 0.0,
         }
     }
 }
@@ -177,6 +185,9 @@ pub struct VqRefiner {
     device: Device,
     trace: SamplingTrace,
     plain_codes: Option<Vec<bool>>,
+    /// Per code, the unit chroma direction of its patch (zero for plain codes), computed once
+    /// for [`RefinerOptions::hue_coherence`].
+    code_hues: Option<Vec<[f32; 2]>>,
     /// Completion by quilting from true frames' codes ([`crate::bank`]) instead of sampling.
     bank: Option<std::sync::Arc<CodeBank>>,
     /// Per code: mean colour and normalised disparity of its decoded patch ([`Self::code_looks`]).
@@ -232,6 +243,7 @@ impl VqRefiner {
             device,
             trace: SamplingTrace::default(),
             plain_codes: None,
+            code_hues: None,
             bank: None,
             looks: None,
             bank_pixels: None,
@@ -536,8 +548,17 @@ impl VqRefiner {
             let (drawn, drawn_p) = match (within, sampling) {
                 (Some(within), Sampling::Temperature { temperature, .. }) => {
                     let plain = self.plain_codes.as_deref().unwrap_or(&[]);
-                    let (d, p) =
-                        select_codes_by_class(&dist, cells.len(), k, &open, temperature, within, plain, &mut self.rng);
+                    let (d, p) = select_codes_by_class(
+                        &dist,
+                        cells.len(),
+                        k,
+                        &open,
+                        temperature,
+                        within,
+                        plain,
+                        None,
+                        &mut self.rng,
+                    );
                     (d, Some(p))
                 }
                 _ => (select_codes(&dist, cells.len(), k, Some(&open), sampling, &mut self.rng), None),
@@ -648,6 +669,10 @@ impl VqRefiner {
         [ch, cw]: [usize; 2],
         within: Option<f32>,
     ) -> Result<SamplingTrace, ModelError> {
+        let hues = match within {
+            Some(_) if self.options.hue_coherence > 0.0 => Some(self.code_hues()?.to_vec()),
+            _ => None,
+        };
         let Some(context) = self.model.context.as_ref() else {
             return Err(ModelError::MissingPart { part: "a context", operation: "context sampling" });
         };
@@ -749,11 +774,23 @@ impl VqRefiner {
                     })
                     .collect();
                 let n = window_cells.len();
+                let bias = hues
+                    .as_deref()
+                    .map(|h| hue_bias(&window_cells, &open, &states, &codes, h, [ch, cw], self.options.hue_coherence));
                 let (drawn, drawn_p) = match within {
                     Some(within) => {
                         let plain = self.plain_codes.as_deref().unwrap_or(&[]);
-                        let (d, p) =
-                            select_codes_by_class(&dist, n, k, &open, temperature, within, plain, &mut self.rng);
+                        let (d, p) = select_codes_by_class(
+                            &dist,
+                            n,
+                            k,
+                            &open,
+                            temperature,
+                            within,
+                            plain,
+                            bias.as_deref(),
+                            &mut self.rng,
+                        );
                         (d, Some(p))
                     }
                     None => (select_codes(&dist, n, k, Some(&open), sampling, &mut self.rng), None),
@@ -903,6 +940,33 @@ impl VqRefiner {
         Ok(self.plain_codes.as_deref().unwrap_or(&[]))
     }
 
+    /// Per code, the unit direction of its patch's mean chroma (`r - (g + b) / 2`,
+    /// `sqrt(3) / 2 (g - b)`: the angle is the hue), zero for the plain codes
+    /// ([`Self::plain_codes`]) and for a patch without chroma.
+    pub fn code_hues(&mut self) -> Result<&[[f32; 2]], ModelError> {
+        if self.code_hues.is_none() {
+            let plain = self.plain_codes()?.to_vec();
+            let means = self.code_patch_means(|frame, i| {
+                let [r, g, b] = frame.colour.data[i];
+                [r - 0.5 * (g + b), 0.866_025_4 * (g - b)]
+            })?;
+            let hues = means
+                .iter()
+                .zip(&plain)
+                .map(|(&[a, b], &plain)| {
+                    let norm = (a * a + b * b).sqrt();
+                    if plain || norm < 1e-6 {
+                        [0.0, 0.0]
+                    } else {
+                        [a / norm, b / norm]
+                    }
+                })
+                .collect();
+            self.code_hues = Some(hues);
+        }
+        Ok(self.code_hues.as_deref().unwrap_or(&[]))
+    }
+
     /// Per code, the mean of `pixel` (given the decoded frame and a pixel index) over the centre
     /// 2x2 cells of the code decoded alone as a uniform 4x4-cell patch (64 codes per decoder
     /// call).
@@ -952,6 +1016,59 @@ impl VqRefiner {
         let z_q = rows.reshape([1, h, w, d]).permute([0, 3, 1, 2]);
         unpack(self.model.decode(z_q), &self.config.depth)?.pop().ok_or(ModelError::EmptyBatch("decoding codes"))
     }
+}
+
+/// The within-class bias of [`RefinerOptions::hue_coherence`] for a window's cells (row-major
+/// `[window_cells.len(), k]`): an open cell whose 8 neighbours hold coloured codes (observed or
+/// revealed; `codes` holds the observed cells' most likely codes) pays `strength * (1 - cos)
+/// / 2` for each coloured code by the angle between its hue and the neighbours' summed hue;
+/// cells with less than half a coloured neighbour's worth of hue, plain codes and closed
+/// cells pay nothing.
+pub(crate) fn hue_bias(
+    window_cells: &[usize],
+    open: &[bool],
+    states: &[CellState],
+    codes: &[u32],
+    hues: &[[f32; 2]],
+    [ch, cw]: [usize; 2],
+    strength: f32,
+) -> Vec<f32> {
+    let k = hues.len();
+    let mut bias = vec![0.0f32; window_cells.len() * k];
+    for (j, &i) in window_cells.iter().enumerate() {
+        if !open.get(j).copied().unwrap_or(false) {
+            continue;
+        }
+        let (y, x) = ((i / cw) as isize, (i % cw) as isize);
+        let mut sum = [0.0f32; 2];
+        for (dy, dx) in [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)] {
+            let (ny, nx) = (y + dy, x + dx);
+            if ny < 0 || nx < 0 || ny >= ch as isize || nx >= cw as isize {
+                continue;
+            }
+            let n = ny as usize * cw + nx as usize;
+            let code = match states.get(n) {
+                Some(CellState::Revealed(c)) => *c,
+                Some(CellState::Observed) => codes.get(n).copied().unwrap_or(0),
+                _ => continue,
+            };
+            if let Some(h) = hues.get(code as usize) {
+                sum[0] += h[0];
+                sum[1] += h[1];
+            }
+        }
+        let norm = (sum[0] * sum[0] + sum[1] * sum[1]).sqrt();
+        if norm < 0.5 {
+            continue;
+        }
+        let u = [sum[0] / norm, sum[1] / norm];
+        for (b, h) in bias[j * k..(j + 1) * k].iter_mut().zip(hues) {
+            if h[0] != 0.0 || h[1] != 0.0 {
+                *b = strength * (1.0 - (h[0] * u[0] + h[1] * u[1])) * 0.5;
+            }
+        }
+    }
+    bias
 }
 
 /// One window of context sampling: the cells it draws (`core`, row-major `[y0, x0, h, w]` in
@@ -1291,6 +1408,34 @@ fn paste_sources(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cell_next_to_red_cells_pays_for_blue_codes_and_not_for_red_ones() {
+        // codes: 0 plain, 1 red, 2 blue (opposite chroma), 3 a red turned a right angle
+        let hues = [[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]];
+        let (ch, cw) = (3usize, 3usize);
+        // row 0 observed red, row 1 open, row 2: revealed blue on the left, open elsewhere
+        let mut states = vec![CellState::Observed; 3];
+        states.extend([CellState::Open; 3]);
+        states.extend([CellState::Revealed(2), CellState::Open, CellState::Open]);
+        let codes = vec![1, 1, 1, 0, 0, 0, 0, 0, 0];
+        let window: Vec<usize> = (0..9).collect();
+        let open: Vec<bool> = states.iter().map(|s| *s == CellState::Open).collect();
+        let bias = hue_bias(&window, &open, &states, &codes, &hues, [ch, cw], 4.0);
+        let at = |cell: usize, code: usize| bias[cell * 4 + code];
+        // the middle right cell (5) sees two red observed cells and no blue one
+        assert_eq!((at(5, 0), at(5, 1)), (0.0, 0.0), "plain and same-hue codes are free");
+        assert!((at(5, 2) - 4.0).abs() < 1e-5, "the opposite hue pays the whole strength");
+        assert!((at(5, 3) - 2.0).abs() < 1e-5, "a right angle pays half");
+        // cell 8 (bottom right) sees only open cells: no hue, no bias
+        assert!(bias[8 * 4..9 * 4].iter().all(|b| *b == 0.0));
+        // closed cells carry none
+        assert!(bias[..3 * 4].iter().all(|b| *b == 0.0));
+        // cell 3 sees two red cells above and the revealed blue one below: red wins the sum
+        assert!((at(3, 2) - 4.0).abs() < 1e-5 && at(3, 1) == 0.0);
+        // cell 4 sees three red and one blue: the same direction
+        assert!((at(4, 2) - 4.0).abs() < 1e-5);
+    }
 
     /// A `side x side` frame whose every pixel has its own colour, and depth `depth`.
     fn textured(side: u32, depth: f32) -> RgbdFrame {

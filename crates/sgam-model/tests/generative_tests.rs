@@ -127,7 +127,7 @@ fn two_level_sampling_draws_the_class_at_the_temperature_and_the_code_at_the_wit
     let expected: Vec<f64> =
         (0..k).map(|j| if plain[j] { p_plain * in_plain[j] } else { (1.0 - p_plain) * in_coloured[j] }).collect();
     let mut rng = ChaCha8Rng::seed_from_u64(3);
-    let (drawn, probs) = select_codes_by_class(&table, n, k, &missing, t as f32, within as f32, &plain, &mut rng);
+    let (drawn, probs) = select_codes_by_class(&table, n, k, &missing, t as f32, within as f32, &plain, None, &mut rng);
     // 5 degrees of freedom: the 0.1 % critical value is 20.5
     let chi2 = chi_square(&drawn, &expected);
     assert!(chi2 < 20.5, "chi-square {chi2:.2}");
@@ -139,17 +139,47 @@ fn two_level_sampling_draws_the_class_at_the_temperature_and_the_code_at_the_wit
         assert!((*p as f64 - expected[*c as usize]).abs() < 1e-5, "code {c}: {p} vs {}", expected[*c as usize]);
     }
     // within = temperature is plain temperature sampling
-    let (same, _) = select_codes_by_class(&table, n, k, &missing, t as f32, t as f32, &plain, &mut rng);
+    let (same, _) = select_codes_by_class(&table, n, k, &missing, t as f32, t as f32, &plain, None, &mut rng);
     let chi2 = chi_square(&same, &whole);
     assert!(chi2 < 20.5, "within = T: chi-square {chi2:.2}");
     // within -> 0 takes the nearest code of the drawn class: codes 1 (plain) and 0 (coloured)
-    let (cold, _) = select_codes_by_class(&table, n, k, &missing, t as f32, 0.0, &plain, &mut rng);
+    let (cold, _) = select_codes_by_class(&table, n, k, &missing, t as f32, 0.0, &plain, None, &mut rng);
     assert!(cold.iter().all(|&c| c == 1 || c == 0));
     let cold_plain = cold.iter().filter(|&&c| c == 1).count() as f64 / n as f64;
     assert!((cold_plain - p_plain).abs() < 0.015, "{cold_plain:.3} vs {p_plain:.3}");
     // observed rows take the argmin
-    let (kept, p) = select_codes_by_class(&table, n, k, &vec![false; n], t as f32, within as f32, &plain, &mut rng);
+    let (kept, p) =
+        select_codes_by_class(&table, n, k, &vec![false; n], t as f32, within as f32, &plain, None, &mut rng);
     assert!(kept.iter().all(|&c| c == 1) && p.iter().all(|&p| p == 1.0));
+}
+
+#[test]
+fn a_within_class_bias_moves_the_code_but_not_the_class() {
+    // 6 codes; 1, 4 and 5 plain, the rest coloured; the bias makes code 3 the coloured class's
+    let dist = [0.3f32, 0.0, 0.9, 0.5, 2.0, 0.1];
+    let plain = [false, true, false, false, true, true];
+    let (n, k) = (4_000usize, dist.len());
+    let table: Vec<f32> = (0..n).flat_map(|_| dist).collect();
+    let missing = vec![true; n];
+    let bias: Vec<f32> = (0..n).flat_map(|_| [20.0f32, 0.0, 20.0, 0.0, 0.0, 0.0]).collect();
+    let draw = |bias: Option<&[f32]>| {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        select_codes_by_class(&table, n, k, &missing, 1.0, 0.5, &plain, bias, &mut rng).0
+    };
+    let (free, biased) = (draw(None), draw(Some(&bias)));
+    let mut coloured = 0;
+    for (a, b) in free.iter().zip(&biased) {
+        // the same class in every row, drawn by the same uniforms
+        assert_eq!(plain[*a as usize], plain[*b as usize], "{a} vs {b}");
+        if plain[*a as usize] {
+            assert_eq!(a, b, "plain rows carry no bias");
+        } else {
+            coloured += 1;
+            assert_eq!(*b, 3, "the coloured draw follows the bias");
+        }
+    }
+    assert!(coloured > 500, "{coloured} coloured rows");
+    assert!(free.contains(&0), "without the bias code 0 is the likeliest coloured code");
 }
 
 #[test]
@@ -613,7 +643,7 @@ fn two_level_draws_equal_the_sequential_reference() {
     for plain in [(0..k).map(|j| j % 3 == 0).collect::<Vec<_>>(), vec![true; k], vec![false; 5]] {
         for (t, within) in [(1.0, 0.5), (2.0, 2.0), (1.0, 0.0), (0.0, 0.5), (f32::NAN, 0.5)] {
             let (mut a, mut b) = (ChaCha8Rng::seed_from_u64(9), ChaCha8Rng::seed_from_u64(9));
-            let ours = select_codes_by_class(&table, n, k, &missing, t, within, &plain, &mut a);
+            let ours = select_codes_by_class(&table, n, k, &missing, t, within, &plain, None, &mut a);
             let theirs = reference(&table, n, k, &missing, t, within, &plain, &mut b);
             assert_eq!(ours, theirs, "t {t}, within {within}");
             assert_eq!(a.random::<u64>(), b.random::<u64>(), "t {t}, within {within}: the stream moved differently");

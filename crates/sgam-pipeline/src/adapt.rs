@@ -194,10 +194,12 @@ pub fn adapt_to_seed(
     }
     let seconds = start.elapsed().as_secs_f64();
     // the code head read the old encoder's features: the adapted model gives each cell its
-    // nearest code instead
+    // nearest code instead, and the context (which adds to the head's logits) goes with it
     let mut adapted = trainer.inference_model();
     adapted.code_head = None;
-    let adapted_config = sgam_model::ModelConfig { code_head: false, code_tau: None, ..config.clone() };
+    adapted.context = None;
+    let adapted_config =
+        sgam_model::ModelConfig { code_head: false, code_tau: None, context: None, ..config.clone() };
     let psnr_after_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&adapted, &adapted_config, x))?;
     let meta = sgam_model::refiner::weight_metadata(&adapted_config).map_err(model_error)?;
     save_safetensors(&adapted, out, WeightPrecision::F32, Some(meta))

@@ -16,8 +16,8 @@ use crate::{PipelineError, Result, HELD_OUT_SEED_BASE};
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BankSpec {
-    /// The bundled bank for a synthetic CLEVR-Infinite seed grown by the bundled model, the
-    /// seed's own for a seed from outside the synthetic world, else none
+    /// The seed's own bank for a seed from outside the synthetic world, none for a
+    /// CLEVR-Infinite seed: the bundled model's context draws its holes
     /// ([`BankSpec::resolve_for`]; a run's resolved configuration never holds it).
     Auto,
     /// None: the model samples every hole's codes itself.
@@ -59,24 +59,16 @@ impl std::fmt::Display for BankSpec {
 }
 
 impl BankSpec {
-    /// [`BankSpec::resolve`] for a run from `seed`: the bundled bank fits a synthetic
-    /// CLEVR-Infinite seed at 256 px; a seed from outside the synthetic world (Google Earth, a
-    /// user's RGB-D) is quilted from itself.
-    pub fn resolve_for(&self, seed: &crate::SeedSpec, bundled_model: bool) -> BankSpec {
+    /// [`BankSpec::Auto`] made concrete for a run from `seed`: a seed from outside the
+    /// synthetic world (Google Earth, a user's RGB-D) is quilted from itself; a CLEVR-Infinite
+    /// seed takes none, the model draws its holes (with the bundled model, its context: since
+    /// session 30 it beats the bundled bank on every path measured, docs/MODEL.md). Other
+    /// choices stay as they are.
+    pub fn resolve_for(&self, seed: &crate::SeedSpec) -> BankSpec {
         match (self, seed) {
             (BankSpec::Auto, crate::SeedSpec::Rgbd { .. } | crate::SeedSpec::GoogleEarth { .. }) => BankSpec::Seed,
-            _ => self.resolve(matches!(seed, crate::SeedSpec::Synthetic { res: 256, .. }), bundled_model),
-        }
-    }
-
-    /// [`BankSpec::Auto`] made concrete for a synthetic seed: the bundled bank when the seed's
-    /// frames are the bundled bank's kind (`fits`: synthetic CLEVR-Infinite at 256 px) and the
-    /// model the bundled one (`bundled_model`), else none; other choices as they are.
-    pub fn resolve(&self, fits: bool, bundled_model: bool) -> BankSpec {
-        match self {
-            BankSpec::Auto if fits && bundled_model => BankSpec::Bundled,
-            BankSpec::Auto => BankSpec::None,
-            other => other.clone(),
+            (BankSpec::Auto, _) => BankSpec::None,
+            (other, _) => other.clone(),
         }
     }
 

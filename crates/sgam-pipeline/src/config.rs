@@ -97,6 +97,10 @@ pub struct RunConfig {
     /// 0 = off (runs written before it existed read as 0).
     #[serde(default)]
     pub max_object_m2: f32,
+    /// Guard rail on invented objects' length, metres ([`GeneratorConfig::max_object_length_m`]);
+    /// 0 = off (runs written before it existed read as 0).
+    #[serde(default)]
+    pub max_object_length_m: f32,
     /// Bound on the map's memory, MB: beyond it, far super-blocks go to tiles on disk
     /// ([`crate::tiles`]). 0 = no bound (runs written before it existed read as 0).
     #[serde(default)]
@@ -118,6 +122,7 @@ impl RunConfig {
             carve_free_space: self.carve_free_space,
             solid_max_m: self.solid_max_m,
             max_object_m2: self.max_object_m2,
+            max_object_length_m: self.max_object_length_m,
             ..clevr_generator_config(self.run_seed)
         }
     }

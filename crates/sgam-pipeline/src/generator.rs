@@ -53,6 +53,9 @@ pub struct GeneratorConfig {
     /// metres has its invented pixels put on the ground plane
     /// ([`sgam_core::solid::cap_invented_objects`]); 0 = off.
     pub max_object_m2: f32,
+    /// Guard rail: an object with invented pixels whose footprint is longer than this many
+    /// metres has its invented pixels put on the ground plane (the same rule); 0 = off.
+    pub max_object_length_m: f32,
 }
 
 /// The loop's parameters for the CLEVR-Infinite world: the [`crate::seeds::CLEVR`] preset's voxels,
@@ -82,6 +85,7 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         carve_free_space: false,
         solid_max_m: 0.0,
         max_object_m2: 0.0,
+        max_object_length_m: 0.0,
     }
 }
 
@@ -261,9 +265,12 @@ impl<R: Refiner> WorldGenerator<R> {
                 snap_to_ground(&mut frame, &guidance.missing, camera, &plane, &cfg);
             }
         }
-        if self.config.max_object_m2 > 0.0 {
+        if self.config.max_object_m2 > 0.0 || self.config.max_object_length_m > 0.0 {
             if let Some(plane) = self.ground_plane()? {
-                let cfg = ObjectCapConfig::new(self.config.max_object_m2);
+                let cfg = ObjectCapConfig {
+                    max_length_m: self.config.max_object_length_m,
+                    ..ObjectCapConfig::new(self.config.max_object_m2)
+                };
                 cap_invented_objects(&mut frame, &guidance.missing, camera, &plane, &cfg);
             }
         }

@@ -57,7 +57,7 @@ pub use refiners::{
 };
 pub use run::{Generated, Quiet, Resume, RunObserver};
 pub use seeds::{
-    check_intrinsics, synthetic_seed_camera, Preset, Seed, SeedSpec, CLEVR, GOOGLE_EARTH, HELD_OUT_SEED_BASE,
+    check_intrinsics, synthetic_seed_camera, Preset, Seed, SeedSpec, CLEVR, GOOGLE_EARTH, HELD_OUT_SEED_BASE, RGBD,
 };
 pub use settings::RunSettings;
 pub use snapshot::save_map;

@@ -19,12 +19,14 @@ use crate::error::config_error;
 use crate::BankSpec;
 use crate::{PipelineError, Result, Seed};
 
-/// The bundled compact model (f16 safetensors, config embedded; see docs/MODEL.md), compiled
-/// into the library so an installed `sgam` needs no files next to it.
+/// The bundled model (f16 safetensors, config embedded; see docs/MODEL.md): the compact VQ
+/// autoencoder and code head with the context transformer CL2 (session 28) over its code grid,
+/// compiled into the library so an installed `sgam` needs no files next to it.
 pub const BUNDLED_MODEL: &[u8] = include_bytes!("../../../models/compact.safetensors");
 
-/// The code bank built with the bundled model (`sgam train bank`, 4,096 frames of training
-/// scenes; see docs/MODEL.md), compiled in like the model.
+/// The code bank built with the bundled model's encoder (`sgam train bank`, 4,096 frames of
+/// training scenes; see docs/MODEL.md), compiled in like the model; used when named
+/// (`--bank bundled`): the default for CLEVR seeds is the model's own draws since session 30.
 pub const BUNDLED_BANK: &[u8] = include_bytes!("../../../models/bank.bin");
 
 /// Which refiner completes the guidance, resolved.

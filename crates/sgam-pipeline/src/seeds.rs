@@ -27,6 +27,12 @@ pub struct Preset {
     pub voxel_size_m: f32,
     /// Truncation, voxels.
     pub trunc_voxels: f32,
+    /// Invented objects fused as solids up to this deep, metres (0 = off; `--solid-objects`).
+    pub solid_objects_m: f32,
+    /// Guard rail on invented objects' footprints, m² (0 = off; `--max-object-m2`).
+    pub max_object_m2: f32,
+    /// Guard rail on invented objects' length, metres (0 = off; `--max-object-length`).
+    pub max_object_length_m: f32,
 }
 
 /// CLEVR-Infinite: 0.408 m steps (half the dataset spacing), 5 sources within 1 m, 5 cm voxels,
@@ -34,11 +40,37 @@ pub struct Preset {
 /// world's 1-2 m objects in the map itself (the oracle's objects merge: 11.8 instead of 13.5
 /// per 100 m², p90 footprint 6.2 instead of 4.8 m²) and lets an invented object's inconsistent
 /// views average into a skirt on the ground around it (docs/MODEL.md, session 11).
-pub const CLEVR: Preset =
-    Preset { step_m: 0.408, k_sources: 5, source_radius_m: 1.0, voxel_size_m: 0.05, trunc_voxels: 5.0 };
-/// Google Earth: 2 cm steps, 3 sources within 0.3, 1 cm voxels, truncation 3 voxels.
-pub const GOOGLE_EARTH: Preset =
-    Preset { step_m: 0.02, k_sources: 3, source_radius_m: 0.3, voxel_size_m: 0.01, trunc_voxels: 3.0 };
+/// Invented objects are fused as solids up to 1 m deep and capped at 6 m² of footprint
+/// (CLEVR-Infinite's objects: median about 2 m², 90th percentile 4-6 m²): with the bundled
+/// context model they keep the spiral's new area from collapsing into mounds (docs/MODEL.md,
+/// sessions 29-30).
+pub const CLEVR: Preset = Preset {
+    step_m: 0.408,
+    k_sources: 5,
+    source_radius_m: 1.0,
+    voxel_size_m: 0.05,
+    trunc_voxels: 5.0,
+    solid_objects_m: 1.0,
+    max_object_m2: 6.0,
+    max_object_length_m: 0.0,
+};
+/// Google Earth: 2 cm steps, 3 sources within 0.3, 1 cm voxels, truncation 3 voxels. No solids
+/// and no size cap: a Google Earth seed's units are not metres, and its buildings are not
+/// CLEVR's primitives.
+pub const GOOGLE_EARTH: Preset = Preset {
+    step_m: 0.02,
+    k_sources: 3,
+    source_radius_m: 0.3,
+    voxel_size_m: 0.01,
+    trunc_voxels: 3.0,
+    solid_objects_m: 0.0,
+    max_object_m2: 0.0,
+    max_object_length_m: 0.0,
+};
+/// A user's RGB-D frame: CLEVR's map and sources (the step follows the seed's depth,
+/// `sgam generate --help`), without solids or the size cap, which are sized for
+/// CLEVR-Infinite's objects.
+pub const RGBD: Preset = Preset { solid_objects_m: 0.0, max_object_m2: 0.0, max_object_length_m: 0.0, ..CLEVR };
 
 /// Where a run's seed frame comes from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,7 +109,8 @@ impl SeedSpec {
     pub fn preset(&self) -> Preset {
         match self {
             SeedSpec::GoogleEarth { .. } => GOOGLE_EARTH,
-            _ => CLEVR,
+            SeedSpec::Rgbd { .. } => RGBD,
+            SeedSpec::Synthetic { .. } | SeedSpec::ClevrTemplate { .. } => CLEVR,
         }
     }
 

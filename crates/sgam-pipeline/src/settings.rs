@@ -41,6 +41,10 @@ pub const DEFAULT_CELLS_PER_PASS: usize = 8;
 /// Chosen on the line, Google Earth's own path: on the zig-zag and the spiral tiles score worse
 /// by KID, and on the spiral a roof grows step by step (docs/STATUS.md, session 23).
 pub const DEFAULT_QUILT_TILE: usize = 8;
+/// Default of `--max-passes`: the refiner's own ([`sgam_model::RefinerOptions`]), 4 since session 10.
+pub const DEFAULT_MAX_PASSES: usize = 4;
+/// Default of `--hue-coherence`, nats: off.
+pub const DEFAULT_HUE_COHERENCE: f32 = 0.0;
 /// Default of `--top-k`: 0, all codes (the trained distribution).
 pub const DEFAULT_TOP_K: usize = 0;
 /// Default of `--ground-snap`, metres: below the shortest object of the synthetic world
@@ -54,10 +58,6 @@ pub const DEFAULT_GROUND_SNAP_M: f32 = 1.0;
 /// roughness and the spiral's from 2.25x to 1.58x; 0.15 m did less (1.52x, 2.18x)
 /// (docs/MODEL.md, session 17).
 pub const DEFAULT_GROUND_FLATTEN_M: f32 = 0.3;
-/// Default of `--solid-objects`, metres (0 = off).
-pub const DEFAULT_SOLID_OBJECTS_M: f32 = 0.0;
-/// Default of `--max-object-m2`, square metres (0 = off).
-pub const DEFAULT_MAX_OBJECT_M2: f32 = 0.0;
 /// Default of `--flying-pixels`.
 pub const DEFAULT_FLYING_PIXELS: FlyingPixels = FlyingPixels::Snap;
 /// Default of `--free-space`.
@@ -120,8 +120,8 @@ pub enum TrajectoryKind {
 /// Which refiner completes the guidance.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
 pub enum RefinerKind {
-    /// The VQ model: --model when given, else the bundled compact model (trained on the
-    /// synthetic CLEVR-Infinite world).
+    /// The VQ model: --model when given, else the bundled model (a compact VQ autoencoder with
+    /// a context transformer over its code grid, trained on the synthetic CLEVR-Infinite world).
     Auto,
     /// Same as auto (kept for scripts that name it).
     Model,
@@ -374,18 +374,19 @@ pub struct RefinerSettings {
     /// Refiner: the learned model (auto, model) or a stand-in (null, oracle).
     #[arg(long, value_enum, default_value_t = RefinerKind::Auto)]
     pub refiner: RefinerKind,
-    /// Model weights for the learned refiner (default: the bundled compact model).
+    /// Model weights for the learned refiner (default: the bundled model, models/compact.safetensors).
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Ablation: no refinement; the guidance (with holes) is fused as it is.
     #[arg(long)]
     pub no_refine: bool,
-    /// Complete each hole from a bank of true frames' codes instead of sampling it cell by cell
+    /// Complete each hole from a bank of true frames' codes instead of sampling it
     /// (auto, none, bundled, seed, or a file from `sgam train bank`): the hole takes the codes
     /// of the real frame whose cells around it look most like the visible ones, so it holds
     /// whole objects; thin bands along the frame's border wait until they are 3 cells wide.
-    /// auto: the bundled bank for a CLEVR-Infinite seed grown by the bundled model, seed for a
-    /// Google Earth or RGB-D seed. The bank must come from the same model (checked). bundled
+    /// auto: none for a CLEVR-Infinite seed (the bundled model's context draws the holes; it
+    /// beat the bundled bank on the held-out worlds, docs/STATUS.md), seed for a Google Earth
+    /// or RGB-D seed. The bank must come from the same model (checked). bundled
     /// and bank files hold synthetic CLEVR-Infinite frames, for those seeds only; seed builds
     /// the bank from the seed frame itself (and its mirror image), and a hole takes the seed's
     /// pixels, so the new area grows in the seed's own look (the model has only seen the
@@ -501,10 +502,21 @@ pub struct SamplingSettings {
     #[arg(long, default_value_t = DEFAULT_WITHIN_TEMPERATURE)]
     pub within_temperature: f32,
     /// Iterative (MaskGIT-style) sampling: missing latent cells drawn per pass. A hole of more
-    /// cells takes several passes (at most 4); each commits the most confident draws, so later
-    /// cells see earlier ones. Larger = faster, less coherent.
+    /// cells takes several passes (at most --max-passes); each commits the most confident
+    /// draws, so later cells see earlier ones. Larger = faster, less coherent.
     #[arg(long, default_value_t = DEFAULT_CELLS_PER_PASS)]
     pub cells_per_pass: usize,
+    /// Iterative sampling: at most this many passes per hole (per window of the context): the
+    /// cells of a pass are drawn side by side, unaware of each other's draws. More = more
+    /// coherent, and each pass costs a run of the model (the context's transformer).
+    #[arg(long, default_value_t = DEFAULT_MAX_PASSES)]
+    pub max_passes: usize,
+    /// Hue coherence of a context model's draws, nats (0 = off): with two-level sampling, a
+    /// missing cell that draws a coloured code next to cells already coloured pays up to this
+    /// much for a hue turned away from theirs, so an object keeps one colour across its cells.
+    /// How often cells start objects is unchanged.
+    #[arg(long, default_value_t = DEFAULT_HUE_COHERENCE, value_name = "NATS")]
+    pub hue_coherence: f32,
     /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
     /// guidance is kept where it was observed and the model fills only the missing pixels.
     #[arg(long)]
@@ -544,6 +556,8 @@ impl Default for SamplingSettings {
             top_k: DEFAULT_TOP_K,
             within_temperature: DEFAULT_WITHIN_TEMPERATURE,
             cells_per_pass: DEFAULT_CELLS_PER_PASS,
+            max_passes: DEFAULT_MAX_PASSES,
+            hue_coherence: DEFAULT_HUE_COHERENCE,
             regenerate_observed: false,
             whole_objects: false,
             quilt_tile: DEFAULT_QUILT_TILE,
@@ -560,6 +574,8 @@ impl SamplingSettings {
         in_range("--top-k", self.top_k, 0..=sgam_model::config::MAX_CODEBOOK)?;
         in_range("--within-temperature", self.within_temperature, 0.0..=100.0)?;
         in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
+        in_range("--max-passes", self.max_passes, 1..=64)?;
+        in_range("--hue-coherence", self.hue_coherence, 0.0..=100.0)?;
         in_range("--quilt-tile", self.quilt_tile, 0..=64)?;
         if let BandsWait::Cells(n) = self.bands_wait {
             in_range("--bands-wait", n, 0..=16)?;
@@ -574,6 +590,8 @@ impl SamplingSettings {
             seed: self.seed,
             keep_observed: !self.regenerate_observed,
             cells_per_pass: self.cells_per_pass,
+            max_passes: self.max_passes,
+            hue_coherence: self.hue_coherence,
             within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
             whole_objects: self.whole_objects,
             quilt_tile: self.quilt_tile,
@@ -621,18 +639,28 @@ pub struct InventedPixelSettings {
     /// which later views see edge-on as a sheet. Invented pixels at least 10 cm above the
     /// ground plane are grouped into objects, and each object is filled behind its surface up
     /// to a back as far behind its front as it is wide (at most this), in space no view has
-    /// seen yet, never under the ground. Needs the ground prior's plane.
-    #[arg(long, default_value_t = DEFAULT_SOLID_OBJECTS_M)]
-    pub solid_objects: f32,
+    /// seen yet, never under the ground. Needs the ground prior's plane. Default: the seed's
+    /// preset, 1 for a CLEVR-Infinite seed, off for a Google Earth or RGB-D seed (sized for
+    /// CLEVR's objects, in metres).
+    #[arg(long, value_name = "M")]
+    pub solid_objects: Option<f32>,
     /// Guard rail on invented objects, square metres (0 = off): an object of the completed
     /// frame (pixels 10 cm or more above the ground plane, connected; the part the map already
     /// holds included) with invented pixels and a footprint past this has its invented pixels
     /// put on the ground plane in the observed ground's colour. Invented colour at a frame's
     /// border is re-rendered and continued step after step into a mound many objects wide; this
     /// stops it growing. CLEVR-Infinite's objects: median about 2 m², 90th percentile 4-6 m²
-    /// (10 cm cells, as `eval world` counts them). Needs the ground prior's plane.
-    #[arg(long, default_value_t = DEFAULT_MAX_OBJECT_M2, value_name = "M2")]
-    pub max_object_m2: f32,
+    /// (10 cm cells, as `eval world` counts them). Needs the ground prior's plane. Default:
+    /// the seed's preset, 6 for a CLEVR-Infinite seed, off for a Google Earth or RGB-D seed.
+    #[arg(long, value_name = "M2")]
+    pub max_object_m2: Option<f32>,
+    /// Guard rail on invented objects' length, metres (0 = off): an object of the completed
+    /// frame with invented pixels whose footprint is longer than this along its principal axis
+    /// has its invented pixels put on the ground, as --max-object-m2 does. A streak that each
+    /// step continues along the path stays under the area cap for long. CLEVR-Infinite's objects
+    /// are at most 2 m across. Default: the seed's preset (off for every seed).
+    #[arg(long, value_name = "M")]
+    pub max_object_length: Option<f32>,
 }
 
 impl Default for InventedPixelSettings {
@@ -642,8 +670,9 @@ impl Default for InventedPixelSettings {
             ground_flatten: DEFAULT_GROUND_FLATTEN_M,
             flying_pixels: DEFAULT_FLYING_PIXELS,
             free_space: DEFAULT_FREE_SPACE,
-            solid_objects: DEFAULT_SOLID_OBJECTS_M,
-            max_object_m2: DEFAULT_MAX_OBJECT_M2,
+            solid_objects: None,
+            max_object_m2: None,
+            max_object_length: None,
         }
     }
 }
@@ -653,8 +682,31 @@ impl InventedPixelSettings {
     pub fn validate(&self) -> Result<()> {
         in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
         in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap.max(0.0))?;
-        in_range("--solid-objects", self.solid_objects, 0.0..=10.0)?;
-        in_range("--max-object-m2", self.max_object_m2, 0.0..=10_000.0)
+        if let Some(m) = self.solid_objects {
+            in_range("--solid-objects", m, 0.0..=10.0)?;
+        }
+        if let Some(m2) = self.max_object_m2 {
+            in_range("--max-object-m2", m2, 0.0..=10_000.0)?;
+        }
+        if let Some(m) = self.max_object_length {
+            in_range("--max-object-length", m, 0.0..=1_000.0)?;
+        }
+        Ok(())
+    }
+
+    /// `--solid-objects` as given, else the seed's preset, metres (0 = off).
+    pub fn solid_objects_m(&self, preset: &crate::Preset) -> f32 {
+        self.solid_objects.unwrap_or(preset.solid_objects_m)
+    }
+
+    /// `--max-object-m2` as given, else the seed's preset, m² (0 = off).
+    pub fn max_object_m2(&self, preset: &crate::Preset) -> f32 {
+        self.max_object_m2.unwrap_or(preset.max_object_m2)
+    }
+
+    /// `--max-object-length` as given, else the seed's preset, metres (0 = off).
+    pub fn max_object_length_m(&self, preset: &crate::Preset) -> f32 {
+        self.max_object_length.unwrap_or(preset.max_object_length_m)
     }
 }
 
@@ -922,7 +974,7 @@ impl RunSettings {
         let p = &self.invented;
         let refiner = match self.refiner_spec() {
             RefinerSpec::Model { model, options, bank, adapt_s } => {
-                let bank = bank.resolve_for(&seed, model.is_none());
+                let bank = bank.resolve_for(&seed);
                 RefinerSpec::Model { model, options, bank, adapt_s }
             }
             other => other,
@@ -949,8 +1001,9 @@ impl RunSettings {
             ground_flatten_m: if invents && p.ground_snap > 0.0 { p.ground_flatten } else { 0.0 },
             snap_flying_pixels: invents && p.flying_pixels == FlyingPixels::Snap,
             carve_free_space: invents && p.free_space == FreeSpace::Carve,
-            solid_max_m: if invents { p.solid_objects } else { 0.0 },
-            max_object_m2: if invents { p.max_object_m2 } else { 0.0 },
+            solid_max_m: if invents { p.solid_objects_m(&preset) } else { 0.0 },
+            max_object_m2: if invents { p.max_object_m2(&preset) } else { 0.0 },
+            max_object_length_m: if invents { p.max_object_length_m(&preset) } else { 0.0 },
             outputs: self.outputs.settings(),
             max_map_mb: m.max_map_mb,
         })
@@ -1025,27 +1078,32 @@ mod tests {
         assert_eq!((c.map.voxel_size_m, c.map.trunc_voxels, c.k_sources), (0.05, 5.0, 5));
         assert_eq!(c.map, crate::clevr_generator_config(0).tsdf, "generation and training share the map");
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (Some(1.0), true, true));
-        assert_eq!(c.solid_max_m, DEFAULT_SOLID_OBJECTS_M);
-        assert_eq!(c.generator_config().solid_max_m, DEFAULT_SOLID_OBJECTS_M);
-        let RefinerSpec::Model { model: None, options, bank: BankSpec::Bundled, adapt_s: 0.0 } = c.refiner else {
+        assert_eq!(c.solid_max_m, crate::CLEVR.solid_objects_m);
+        assert_eq!(c.generator_config().solid_max_m, 1.0, "CLEVR's objects are fused as solids");
+        assert_eq!(c.generator_config().max_object_m2, 6.0, "and capped at 6 m2");
+        let RefinerSpec::Model { model: None, options, bank: BankSpec::None, adapt_s: 0.0 } = c.refiner else {
             panic!("{:?}", c.refiner)
         };
         assert_eq!((options.cells_per_pass, options.within_class_temperature), (8, Some(0.6)));
+        assert_eq!(options.max_passes, 4);
         assert!(options.keep_observed);
         // the oracle's pixels are never changed, whatever the policy says
         let mut oracle = RunSettings::clevr(7);
         oracle.refiner = RefinerSettings::kind(RefinerKind::Oracle);
-        oracle.invented.solid_objects = 1.5;
-        oracle.invented.max_object_m2 = 6.0;
+        oracle.invented.solid_objects = Some(1.5);
+        oracle.invented.max_object_m2 = Some(6.0);
         let c = oracle.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
         assert_eq!(c.solid_max_m, 0.0, "the oracle's objects are the true world's");
         assert_eq!(c.max_object_m2, 0.0, "the oracle's objects are never capped");
-        // the guard rail reaches the model's generator
+        assert_eq!(c.max_object_length_m, 0.0);
+        // a value given reaches the model's generator, over the preset
         let mut capped = RunSettings::clevr(7);
-        capped.invented.max_object_m2 = 6.0;
-        assert_eq!(capped.resolve().unwrap().generator_config().max_object_m2, 6.0);
-        assert_eq!(RunConfig::clevr(7).generator_config().max_object_m2, DEFAULT_MAX_OBJECT_M2);
+        capped.invented.max_object_m2 = Some(4.5);
+        capped.invented.solid_objects = Some(0.0);
+        capped.invented.max_object_length = Some(3.0);
+        let c = capped.resolve().unwrap().generator_config();
+        assert_eq!((c.max_object_m2, c.solid_max_m, c.max_object_length_m), (4.5, 0.0, 3.0));
         // `keep` turns each filter off for the model
         let mut keep = RunSettings::clevr(7);
         keep.invented = InventedPixelSettings {
@@ -1053,11 +1111,13 @@ mod tests {
             ground_flatten: 0.0,
             flying_pixels: FlyingPixels::Keep,
             free_space: FreeSpace::Keep,
-            solid_objects: 0.0,
-            max_object_m2: 0.0,
+            solid_objects: Some(0.0),
+            max_object_m2: Some(0.0),
+            max_object_length: Some(0.0),
         };
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
+        assert_eq!((c.solid_max_m, c.max_object_m2), (0.0, 0.0));
     }
 
     #[test]
@@ -1066,6 +1126,15 @@ mod tests {
         ge.seed.seed_google_earth = Some("seed0".into());
         let c = ge.resolve().unwrap();
         assert_eq!((c.map.voxel_size_m, c.k_sources, c.source_radius_m), (0.01, 3, 0.3));
+        // CLEVR's solids and size cap are in metres: off for a seed whose units are not
+        assert_eq!((c.solid_max_m, c.max_object_m2), (0.0, 0.0));
+        let mut rgbd = RunSettings::default();
+        rgbd.seed.seed_rgb = Some("a.png".into());
+        rgbd.seed.seed_depth = Some("a.npy".into());
+        rgbd.seed.intrinsics = Some([30.0, 30.0, 16.0, 16.0]);
+        assert_eq!(rgbd.seed.spec().unwrap().preset(), crate::RGBD);
+        assert_eq!((crate::RGBD.solid_objects_m, crate::RGBD.max_object_m2), (0.0, 0.0));
+        assert_eq!(crate::RGBD.voxel_size_m, crate::CLEVR.voxel_size_m);
         // the authors' Google Earth path: a straight line, 0.059 units a step
         assert_eq!(c.trajectory, TrajectorySpec::Line { step_m: GOOGLE_EARTH_LINE_STEP });
         ge.path.trajectory = TrajectoryKind::Zigzag;
@@ -1079,18 +1148,15 @@ mod tests {
     }
 
     #[test]
-    fn the_bank_is_on_by_default_only_where_the_bundled_one_fits() {
+    fn the_bank_is_the_seeds_own_outside_the_synthetic_world_and_none_in_it() {
         let bank = |s: &RunSettings| match s.resolve().unwrap().refiner {
             RefinerSpec::Model { bank, .. } => bank,
             other => panic!("{other:?}"),
         };
         let mut s = RunSettings::default();
-        assert_eq!(bank(&s), BankSpec::Bundled);
-        s.seed.res = 128;
-        assert_eq!(bank(&s), BankSpec::None, "the bundled bank holds 256 px frames");
-        s.seed.res = 256;
+        assert_eq!(bank(&s), BankSpec::None, "the bundled model's context draws CLEVR's holes");
         s.refiner.model = Some("other.safetensors".into());
-        assert_eq!(bank(&s), BankSpec::None, "another model may have another codebook");
+        assert_eq!(bank(&s), BankSpec::None);
         s.refiner.bank = BankSpec::Bundled;
         assert_eq!(bank(&s), BankSpec::Bundled, "named, it is used (and checked when loaded)");
         // a seed from outside the synthetic world is quilted from itself, by any model
@@ -1098,12 +1164,12 @@ mod tests {
             crate::SeedSpec::GoogleEarth { dir: "ge/seed0".into() },
             crate::SeedSpec::Rgbd { rgb: "a.png".into(), depth: "a.npy".into(), intrinsics: [30.0, 30.0, 16.0, 16.0] },
         ] {
-            assert_eq!(BankSpec::Auto.resolve_for(&spec, true), BankSpec::Seed);
-            assert_eq!(BankSpec::Auto.resolve_for(&spec, false), BankSpec::Seed);
-            assert_eq!(BankSpec::None.resolve_for(&spec, true), BankSpec::None, "--bank none draws with the model");
+            assert_eq!(BankSpec::Auto.resolve_for(&spec), BankSpec::Seed);
+            assert_eq!(BankSpec::None.resolve_for(&spec), BankSpec::None, "--bank none draws with the model");
         }
         let template = crate::SeedSpec::ClevrTemplate { dir: "t".into() };
-        assert_eq!(BankSpec::Auto.resolve_for(&template, true), BankSpec::None);
+        assert_eq!(BankSpec::Auto.resolve_for(&template), BankSpec::None);
+        assert_eq!(BankSpec::Bundled.resolve_for(&template), BankSpec::Bundled);
     }
 
     #[test]
@@ -1162,8 +1228,14 @@ mod tests {
         assert!(err(s).contains("--trajectory-file"));
         for bad in [-1.0, f32::NAN, 11.0] {
             let mut s = RunSettings::default();
-            s.invented.solid_objects = bad;
+            s.invented.solid_objects = Some(bad);
             assert!(err(s).contains("--solid-objects"), "{bad}");
+            let mut s = RunSettings::default();
+            s.invented.max_object_m2 = Some(bad * 1000.0);
+            assert!(err(s).contains("--max-object-m2"), "{bad}");
+            let mut s = RunSettings::default();
+            s.invented.max_object_length = Some(bad * 100.0);
+            assert!(err(s).contains("--max-object-length"), "{bad}");
         }
         let mut s = RunSettings::default();
         s.seed.seed_template = Some("a".into());
@@ -1176,6 +1248,14 @@ mod tests {
         let mut s = RunSettings::default();
         s.sampling.cells_per_pass = 0;
         assert!(err(s).contains("--cells-per-pass 0 is out of range"));
+        for bad in [0, 65] {
+            let mut s = RunSettings::default();
+            s.sampling.max_passes = bad;
+            assert!(err(s).contains(&format!("--max-passes {bad} is out of range")), "{bad}");
+        }
+        let mut s = RunSettings::default();
+        s.sampling.max_passes = 12;
+        assert_eq!(s.sampling.refiner_options().max_passes, 12, "--max-passes reaches the refiner");
         for bad in [-1.0, f32::NAN, 4000.0] {
             let mut s = RunSettings::default();
             s.refiner.adapt = bad;

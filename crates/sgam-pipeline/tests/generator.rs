@@ -41,6 +41,7 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
         carve_free_space: false,
         solid_max_m: 0.0,
         max_object_m2: 0.0,
+        max_object_length_m: 0.0,
         max_map_mb: 0,
     }
 }

@@ -26,12 +26,12 @@ pub enum Subject {
     MapStep,
     /// Ray tracing one synthetic frame (4 spp, soft shadows).
     Synth,
-    /// One completion by the compact VQ model (bundled weights, or untrained ones: same cost),
-    /// a quarter of the frame missing; on the CPU its kernels (sgam_model::nhwc) against burn's
+    /// One completion by the bundled model (its context draws the hole; or --model), a
+    /// quarter of the frame missing; on the CPU its kernels (sgam_model::nhwc) against burn's
     /// pass of the same model, interleaved.
     Refine,
     /// One full generation step (sources + render + warp + refine + integrate + re-mesh +
-    /// write) with the compact model; prints the per-stage split.
+    /// write) with the bundled model; prints the per-stage split.
     Step,
 }
 
@@ -87,7 +87,7 @@ fn stats(ms: &[f64]) -> (f64, f64, f64) {
     (sgam_metrics::median(ms).unwrap_or(0.0), ms.iter().sum::<f64>() / ms.len() as f64, min)
 }
 
-/// The bundled compact model with `sgam generate`'s default sampling (the refiner `sgam
+/// The bundled model with `sgam generate`'s default sampling (the refiner `sgam
 /// generate` builds with no options), for timing.
 fn compact_refiner(model: Option<&std::path::Path>, bank: &sgam_pipeline::BankSpec) -> Result<sgam_model::VqRefiner> {
     if let Some(p) = model {

@@ -132,6 +132,12 @@ impl WorldArgs {
             if s.cells_per_pass != DEFAULT_CELLS_PER_PASS {
                 label.push_str(&format!("-c{}", s.cells_per_pass));
             }
+            if s.max_passes != sgam_pipeline::settings::DEFAULT_MAX_PASSES {
+                label.push_str(&format!("-p{}", s.max_passes));
+            }
+            if s.hue_coherence != sgam_pipeline::settings::DEFAULT_HUE_COHERENCE {
+                label.push_str(&format!("-hue{}", s.hue_coherence));
+            }
             if s.top_k != DEFAULT_TOP_K {
                 label.push_str(&format!("-k{}", s.top_k));
             }
@@ -147,7 +153,7 @@ impl WorldArgs {
             }
             // the bank's bytes name it, like the weights
             // (its worlds are 256 px synthetic ones: the bundled bank fits)
-            let bank = r.bank.resolve(true, r.model.is_none());
+            let bank = r.bank.resolve_for(&sgam_pipeline::SeedSpec::Synthetic { scene: 0, res: 256 });
             // worlds grown before --bands-wait existed: a bank's holes waited below 3 cells,
             // the model's own draws never
             let banked = !matches!(bank, sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto);
@@ -189,11 +195,17 @@ impl WorldArgs {
             if p.free_space == FreeSpace::Carve {
                 label.push_str("-carve");
             }
-            if p.solid_objects > 0.0 {
-                label.push_str(&format!("-solid{}", p.solid_objects));
+            // the synthetic seeds' preset when not given
+            let (solid, cap) = (p.solid_objects_m(&sgam_pipeline::CLEVR), p.max_object_m2(&sgam_pipeline::CLEVR));
+            if solid > 0.0 {
+                label.push_str(&format!("-solid{solid}"));
             }
-            if p.max_object_m2 > 0.0 {
-                label.push_str(&format!("-cap{}", p.max_object_m2));
+            if cap > 0.0 {
+                label.push_str(&format!("-cap{cap}"));
+            }
+            let length = p.max_object_length_m(&sgam_pipeline::CLEVR);
+            if length > 0.0 {
+                label.push_str(&format!("-len{length}"));
             }
         }
         if self.map.no_map {
@@ -393,8 +405,9 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "ground_flatten_m": args.invented.ground_flatten,
         "flying_pixels": args.invented.flying_pixels,
         "free_space": args.invented.free_space,
-        "solid_objects_m": args.invented.solid_objects,
-        "max_object_m2": args.invented.max_object_m2,
+        "solid_objects_m": args.invented.solid_objects_m(&sgam_pipeline::CLEVR),
+        "max_object_m2": args.invented.max_object_m2(&sgam_pipeline::CLEVR),
+        "max_object_length_m": args.invented.max_object_length_m(&sgam_pipeline::CLEVR),
         "top_k": args.sampling.top_k,
         "within_temperature": args.sampling.within_temperature,
         "generated": gp, "oracle": op,

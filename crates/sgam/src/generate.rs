@@ -162,7 +162,7 @@ pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>>
         RefinerSpec::Model { model, options, bank, .. } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
             let seed = run.seed.spec()?;
-            let bank = bank.resolve_for(&seed, model.is_none());
+            let bank = bank.resolve_for(&seed);
             // only the seed's own bank reads the seed frame
             let frame = match bank {
                 BankSpec::Seed => Some(seed.load()?),
@@ -280,6 +280,9 @@ mod tests {
             "trunc-voxels" => format!("{} (CLEVR preset)", p.trunc_voxels),
             "k-sources" => format!("{} (CLEVR preset)", p.k_sources),
             "source-radius" => format!("{} (CLEVR preset)", p.source_radius_m),
+            "solid-objects" => format!("{} (CLEVR preset)", p.solid_objects_m),
+            "max-object-m2" => format!("{} (CLEVR preset)", p.max_object_m2),
+            "max-object-length" => format!("{} (CLEVR preset)", p.max_object_length_m),
             _ => return None,
         })
     }
