@@ -37,6 +37,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         closed_loop: 0.0,
         closed_loop_steps: 1.0,
         recorded_with: None,
+        closed_loop_filters: false,
     };
     let pairs = read_cache(std::path::Path::new(cache), &key)?.ok_or("the cache was recorded with another key")?;
     std::fs::create_dir_all(out)?;

@@ -198,8 +198,7 @@ pub fn adapt_to_seed(
     let mut adapted = trainer.inference_model();
     adapted.code_head = None;
     adapted.context = None;
-    let adapted_config =
-        sgam_model::ModelConfig { code_head: false, code_tau: None, context: None, ..config.clone() };
+    let adapted_config = sgam_model::ModelConfig { code_head: false, code_tau: None, context: None, ..config.clone() };
     let psnr_after_db = whole.as_ref().map_or(Ok(0.0), |x| psnr(&adapted, &adapted_config, x))?;
     let meta = sgam_model::refiner::weight_metadata(&adapted_config).map_err(model_error)?;
     save_safetensors(&adapted, out, WeightPrecision::F32, Some(meta))

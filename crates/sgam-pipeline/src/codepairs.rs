@@ -23,7 +23,7 @@ use sgam_model::generative::{target_codes, CodePair};
 use sgam_model::{ModelConfig, VqModel};
 use sgam_synth::{blender_camera, dataset_intrinsics, RenderConfig, Renderer, Scene, SceneConfig};
 
-use crate::generator::{clevr_generator_config, WorldGenerator};
+use crate::generator::{clevr_generator_config, GeneratorConfig, WorldGenerator};
 use crate::keyframes::Keyframes;
 use crate::{PipelineError, Result};
 
@@ -89,6 +89,11 @@ pub struct ClosedLoop<'a> {
     pub weights: &'a [u8],
     /// Its sampling options (generation's; the seed is drawn per run).
     pub options: sgam_model::RefinerOptions,
+    /// The closed-loop runs treat the model's completions as generation does before fusing them
+    /// (the CLEVR preset's invented-pixel policy: ground prior, flying pixels, free-space
+    /// carving, solids, the size cap), so the guidance holds what `sgam generate` would leave in
+    /// its map; without it they are fused as drawn (pairs recorded before session 30).
+    pub filters: bool,
 }
 
 /// The trajectory shapes pairs are drawn from.
@@ -117,13 +122,15 @@ fn draw_shape(rng: &mut ChaCha8Rng) -> Shape {
 
 /// Runs the generator with the oracle for `steps` steps on training scene `scene_seed` from a
 /// random start, returning every step's guidance and truth (the exact generation path). With
-/// `model`, the generator's map grows with the model's completions instead of the truth.
+/// `model`, the generator's map grows with the model's completions instead of the truth, and
+/// with `filters` those pass generation's invented-pixel policy first ([`ClosedLoop::filters`]).
 fn record_run(
     scene_seed: u64,
     steps: usize,
     res: u32,
     rng: &mut ChaCha8Rng,
     model: Option<(sgam_model::VqRefiner, f32)>,
+    filters: bool,
 ) -> Result<Vec<Recorded>> {
     let renderer = Arc::new(Renderer::new(&Scene::generate(scene_seed, &SceneConfig::default())));
     let start = Vec3::new(rng.random_range(-26.0..2.0), rng.random_range(-26.0..2.0), sgam_synth::CAMERA_HEIGHT_M);
@@ -148,7 +155,12 @@ fn record_run(
         Shape::Spiral(step) => trajectory::spiral_poses(s, steps + 1, step, 4.0),
     };
     let dir = tempfile::tempdir().map_err(|e| sgam_io::IoError::Io { path: std::env::temp_dir(), source: e })?;
-    let config = clevr_generator_config(scene_seed);
+    let config = match (&model, filters) {
+        (Some(_), true) => {
+            GeneratorConfig { seed: scene_seed, ..crate::RunConfig::clevr(scene_seed).generator_config() }
+        }
+        _ => clevr_generator_config(scene_seed),
+    };
     let log = Arc::new(Mutex::new(Vec::new()));
     let model =
         model.map(|(refiner, share)| ModelSteps { refiner, share, rng: ChaCha8Rng::seed_from_u64(rng.random()) });
@@ -259,7 +271,8 @@ pub fn collect(
                     }
                     _ => None,
                 };
-                record_run(scene, steps, 256, &mut ChaCha8Rng::seed_from_u64(stream), model)
+                let filters = closed_loop.is_some_and(|c| c.filters);
+                record_run(scene, steps, 256, &mut ChaCha8Rng::seed_from_u64(stream), model, filters)
             })
             .collect();
         for recorded in recorded {
@@ -328,6 +341,10 @@ pub struct CacheKey {
     /// starting point, not the weights it resumes with.
     #[serde(default)]
     pub recorded_with: Option<u32>,
+    /// Closed-loop runs passed generation's invented-pixel policy ([`ClosedLoop::filters`];
+    /// absent in caches recorded before it: false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub closed_loop_filters: bool,
 }
 
 const CACHE_MAGIC: &[u8; 8] = b"SGAMPAIR";
@@ -453,7 +470,7 @@ mod tests {
         // a generator run records what it handed the refiner; rebuilding the map from the same
         // frames and calling render_guidance with the same sources must give the same image
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let recorded = record_run(11, 4, 64, &mut rng, None).unwrap();
+        let recorded = record_run(11, 4, 64, &mut rng, None, false).unwrap();
         assert_eq!(recorded.len(), 4);
         let config = clevr_generator_config(11);
         // replay: the map holds the seed and steps 1..3; the guidance of step 4 comes from it
@@ -533,8 +550,8 @@ mod tests {
     fn a_closed_loop_run_grows_its_map_with_the_model_and_keeps_the_truth_as_target() {
         let options = crate::settings::SamplingSettings::default().refiner_options();
         let model = sgam_model::VqRefiner::from_bytes(crate::BUNDLED_MODEL, None, options).unwrap();
-        let oracle = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), None).unwrap();
-        let closed = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), Some((model, 1.0))).unwrap();
+        let oracle = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), None, false).unwrap();
+        let closed = record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), Some((model, 1.0)), false).unwrap();
         assert_eq!(closed.len(), oracle.len());
         // the same path and the same true frames: only the map differs
         for (a, b) in oracle.iter().zip(&closed) {
@@ -550,10 +567,25 @@ mod tests {
     }
 
     #[test]
+    fn a_filtered_closed_loop_run_fuses_what_generation_would_and_an_oracle_run_ignores_filters() {
+        let options = crate::settings::SamplingSettings::default().refiner_options();
+        let model = || sgam_model::VqRefiner::from_bytes(crate::BUNDLED_MODEL, None, options).unwrap();
+        let run = |m, filters| record_run(11, 8, 128, &mut ChaCha8Rng::seed_from_u64(4), m, filters).unwrap();
+        let (raw, filtered) = (run(Some((model(), 1.0)), false), run(Some((model(), 1.0)), true));
+        assert_eq!(raw.len(), filtered.len());
+        assert!(raw.iter().zip(&filtered).all(|(a, b)| a.truth == b.truth), "the targets are the truth either way");
+        let differing = raw.iter().zip(&filtered).filter(|(a, b)| a.guidance.frame != b.guidance.frame).count();
+        assert!(differing > 0, "the invented-pixel policy changed no later guidance");
+        // the oracle's runs invent nothing: the filters are not applied to them
+        let (a, b) = (run(None, false), run(None, true));
+        assert!(a.iter().zip(&b).all(|(a, b)| a.guidance.frame == b.guidance.frame));
+    }
+
+    #[test]
     fn a_closed_loop_run_leaves_the_steps_outside_its_share_to_the_oracle() {
         let options = crate::settings::SamplingSettings::default().refiner_options();
         let model = || sgam_model::VqRefiner::from_bytes(crate::BUNDLED_MODEL, None, options).unwrap();
-        let run = |m| record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), m).unwrap();
+        let run = |m| record_run(11, 6, 64, &mut ChaCha8Rng::seed_from_u64(4), m, false).unwrap();
         let (oracle, none, half) = (run(None), run(Some((model(), 0.0))), run(Some((model(), 0.5))));
         // no step of the model's: the oracle's run exactly
         assert_eq!(none.len(), oracle.len());
@@ -622,6 +654,7 @@ mod tests {
             closed_loop: 0.0,
             closed_loop_steps: 1.0,
             recorded_with: None,
+            closed_loop_filters: false,
         };
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("pairs.bin");
@@ -636,6 +669,7 @@ mod tests {
         }
         assert!(read_cache(&path, &CacheKey { seed: 3, ..key.clone() }).unwrap().is_none());
         assert!(read_cache(&path, &CacheKey { closed_loop_steps: 0.5, ..key.clone() }).unwrap().is_none());
+        assert!(read_cache(&path, &CacheKey { closed_loop_filters: true, ..key.clone() }).unwrap().is_none());
         // a mix of run lengths is another recording than its first length alone
         let (first, mix) = CacheKey::run_lengths(&[5, 120]);
         assert!(read_cache(&path, &CacheKey { steps_per_run: first, steps_per_run_mix: mix, ..key.clone() })

@@ -79,6 +79,12 @@ pub struct ContextArgs {
     /// world drifts away from the truth the targets come from).
     #[arg(long, default_value_t = 1.0)]
     pub closed_loop_steps: f32,
+    /// Closed-loop runs treat the model's completions as `sgam generate` does before fusing
+    /// them (CLEVR's invented-pixel policy: ground prior, flying pixels, free-space carving,
+    /// solids, the size cap), so the pairs hold the guidance generation really leaves; without
+    /// it they are fused as drawn (pairs recorded before session 30).
+    #[arg(long)]
+    pub closed_loop_filters: bool,
     /// Validate every N steps (0 = only at the start).
     #[arg(long, default_value_t = 250)]
     pub val_every: u64,
@@ -214,6 +220,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             steps: a.closed_loop_steps,
             weights: &start_bytes,
             options: sgam_pipeline::settings::SamplingSettings::default().refiner_options(),
+            filters: a.closed_loop_filters,
         }),
         pairs_from: a.pairs_from.as_deref(),
         any_recorder: a.pairs_from_any_model,

@@ -156,6 +156,7 @@ pub(crate) fn recorded_pairs(
         stream,
         closed_loop: closed_loop.map_or(0.0, |c| c.share),
         closed_loop_steps: closed_loop.map_or(1.0, |c| c.steps),
+        closed_loop_filters: closed_loop.is_some_and(|c| c.filters),
         // a resumed run's pairs were recorded with its starting model, not the weights it
         // resumes with: any model's (the other options still must match)
         recorded_with: recorded_with.filter(|_| !resuming && !spec.any_recorder),
