@@ -10,7 +10,7 @@
 # one retry of a call that fails early; recording 10,000 pairs took 200 s of it in session 23)
 # Two runs share the GPU and one recording of the pairs (16 cores record 16 generator runs at
 # once): A continues START's context; B is a 4.6x larger context (256 wide, 6 blocks) from the
-# bundled model's autoencoder (the last one without a context, from git), the capacity ablation
+# bundled model's autoencoder (`--new-context` leaves its context out), the capacity ablation
 # issue 26 asks for. At BUDGET both are stopped (their last
 # checkpoints are whole: writes are atomic) and come back as $OUT/{a,b}.safetensors with their
 # val.jsonl and logs. Export with
@@ -37,8 +37,7 @@ prepare)
   apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libglvnd0 libegl1 libgl1 libglx0 \
     libopengl0 libgles2 >/dev/null)
   cp "${2:-models/compact.safetensors}" .device/start.safetensors
-  # the bundled model before it took a context (session 30): B trains a new, larger context on it
-  git show a56ceaf:models/compact.safetensors >.device/base.safetensors
+  cp models/compact.safetensors .device/base.safetensors
   du -sh .device .gl
   ;;
 train)
@@ -71,7 +70,7 @@ train)
     if [ -z "$b" ] && [ -f /tmp/ctxA/pairs-2.bin ]; then
       echo "pairs recorded after $(($(date +%s) - t0)) s"
       mkdir -p /tmp/ctxB && cp /tmp/ctxA/pairs-*.bin /tmp/ctxB/
-      "$bin" train context --run /tmp/ctxB --model .device/base.safetensors --dim 256 --layers 6 \
+      "$bin" train context --run /tmp/ctxB --model .device/base.safetensors --new-context --dim 256 --layers 6 \
         --heads 8 --lr "${LR:-5e-4}" "${common[@]}" >"$out/b.log" 2>&1 &
       b=$!
     fi

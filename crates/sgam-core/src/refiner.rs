@@ -31,4 +31,11 @@ pub trait Refiner {
     /// Returns a complete frame the same size as `guidance.frame`: colour in `[0, 1]`, valid
     /// planar depth in metres at every pixel the model can explain.
     fn refine(&mut self, guidance: &Guidance) -> Result<RgbdFrame, Self::Error>;
+
+    /// Whether the frame the last [`Self::refine`] returned was invented where the guidance was
+    /// missing, so that the generator's invented-pixel policy applies to it. `false` for a step
+    /// answered with the truth (the oracle's steps of a closed-loop recording). Default: `true`.
+    fn last_invented(&self) -> bool {
+        true
+    }
 }

@@ -130,11 +130,12 @@ pub struct RefinerOptions {
     /// grew larger mounds there: docs/MODEL.md, session 29).
     #[serde(default)]
     pub bands_wait: Option<usize>,
-    /// Hue coherence of the context's draws, nats (0 = off): with two-level sampling, a missing
-    /// cell drawing a coloured code next to cells already coloured (observed, or drawn in an
-    /// earlier pass) pays up to this much for a code whose hue turns away from theirs
+    /// Hue coherence of the context's draws (0 = off): with two-level sampling, a missing cell
+    /// drawing a coloured code next to cells already coloured (observed, or drawn in an earlier
+    /// pass) pays up to this much for a code whose hue turns away from theirs
     /// (`hue_coherence * (1 - cos angle) / 2`), in the draw within the class only, so an object
-    /// keeps one colour across its cells; how often cells start objects is unchanged.
+    /// keeps one colour across its cells; how often cells start objects is unchanged. In the
+    /// logits' units, before the within-class temperature divides them (3 at 0.6 is 5 nats).
     #[serde(default)]
     pub hue_coherence: f32,
 }
@@ -147,8 +148,15 @@ fn default_cells_per_pass() -> usize {
     48
 }
 
+/// [`RefinerOptions::max_passes`] by default (session 10).
+pub const DEFAULT_MAX_PASSES: usize = 4;
+
+/// A code's mean chroma (colour units, 0-1) below which it has no hue
+/// ([`VqRefiner::code_hues`]): its colours cancel out.
+pub const MIN_HUE_CHROMA: f32 = 0.05;
+
 fn default_max_passes() -> usize {
-    4
+    DEFAULT_MAX_PASSES
 }
 
 fn default_true() -> bool {
@@ -942,7 +950,7 @@ impl VqRefiner {
 
     /// Per code, the unit direction of its patch's mean chroma (`r - (g + b) / 2`,
     /// `sqrt(3) / 2 (g - b)`: the angle is the hue), zero for the plain codes
-    /// ([`Self::plain_codes`]) and for a patch without chroma.
+    /// ([`Self::plain_codes`]) and for a patch whose mean chroma is under [`MIN_HUE_CHROMA`].
     pub fn code_hues(&mut self) -> Result<&[[f32; 2]], ModelError> {
         if self.code_hues.is_none() {
             let plain = self.plain_codes()?.to_vec();
@@ -955,7 +963,8 @@ impl VqRefiner {
                 .zip(&plain)
                 .map(|(&[a, b], &plain)| {
                     let norm = (a * a + b * b).sqrt();
-                    if plain || norm < 1e-6 {
+                    // a patch whose colours cancel out has no hue to keep
+                    if plain || norm < MIN_HUE_CHROMA {
                         [0.0, 0.0]
                     } else {
                         [a / norm, b / norm]

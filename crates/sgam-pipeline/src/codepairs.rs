@@ -39,6 +39,8 @@ struct Recorder {
     renderer: Arc<Renderer>,
     log: Arc<Mutex<Vec<Recorded>>>,
     model: Option<ModelSteps>,
+    /// Whether the last step was the model's (the generator's filters apply to it only).
+    model_answered: bool,
 }
 
 /// The model of a closed-loop run and the share of its steps it completes (the oracle the rest).
@@ -56,18 +58,21 @@ impl Refiner for Recorder {
         if let Ok(mut log) = self.log.lock() {
             log.push(Recorded { guidance: guidance.clone(), truth: truth.clone() });
         }
-        match &mut self.model {
+        let model = match &mut self.model {
             // (a share of 1 draws nothing: runs recorded before the share existed stay as they were)
-            Some(m) if m.share >= 1.0 => m.refiner.refine(guidance),
-            Some(m) => {
-                if m.rng.random::<f32>() < m.share {
-                    m.refiner.refine(guidance)
-                } else {
-                    Ok(truth)
-                }
-            }
+            Some(m) if m.share >= 1.0 => Some(m),
+            Some(m) => (m.rng.random::<f32>() < m.share).then_some(m),
+            None => None,
+        };
+        self.model_answered = model.is_some();
+        match model {
+            Some(m) => m.refiner.refine(guidance),
             None => Ok(truth),
         }
+    }
+
+    fn last_invented(&self) -> bool {
+        self.model_answered
     }
 }
 
@@ -164,7 +169,7 @@ fn record_run(
     let log = Arc::new(Mutex::new(Vec::new()));
     let model =
         model.map(|(refiner, share)| ModelSteps { refiner, share, rng: ChaCha8Rng::seed_from_u64(rng.random()) });
-    let oracle = Recorder { renderer: renderer.clone(), log: log.clone(), model };
+    let oracle = Recorder { renderer: renderer.clone(), log: log.clone(), model, model_answered: false };
     let keyframes = Keyframes::new(dir.path(), config.source_radius_m, 16);
     let mut generator = WorldGenerator::new(TsdfMap::new(config.tsdf), keyframes, oracle, config);
     let seed_frame = renderer.render(&seed_camera, &RenderConfig::default()).frame;
@@ -576,9 +581,12 @@ mod tests {
         assert!(raw.iter().zip(&filtered).all(|(a, b)| a.truth == b.truth), "the targets are the truth either way");
         let differing = raw.iter().zip(&filtered).filter(|(a, b)| a.guidance.frame != b.guidance.frame).count();
         assert!(differing > 0, "the invented-pixel policy changed no later guidance");
-        // the oracle's runs invent nothing: the filters are not applied to them
-        let (a, b) = (run(None, false), run(None, true));
-        assert!(a.iter().zip(&b).all(|(a, b)| a.guidance.frame == b.guidance.frame));
+        // the oracle's steps invent nothing: the filters are not applied to them, in an oracle
+        // run or in a closed-loop run whose share gives the model no step
+        let oracle = run(None, false);
+        for other in [run(None, true), run(Some((model(), 0.0)), true)] {
+            assert!(oracle.iter().zip(&other).all(|(a, b)| a.guidance.frame == b.guidance.frame));
+        }
     }
 
     #[test]

@@ -236,15 +236,17 @@ impl<R: Refiner> WorldGenerator<R> {
         // complete the incomplete RGB-D image in one shot
         let mut frame = self.refiner.refine(&guidance).map_err(|e| PipelineError::Refiner(Box::new(e)))?;
         quantise_colour(&mut frame.colour);
+        // the invented-pixel policy: for what the refiner invented, not for a true frame
+        let invented = self.refiner.last_invented();
         if let Some(kept) = &mut self.last_guidance {
             *kept = Some((guidance.clone(), frame.clone()));
         }
-        if self.config.snap_flying_pixels {
+        if invented && self.config.snap_flying_pixels {
             let plane = self.ground_plane()?;
             let cfg = FlyingPixelConfig::new(self.config.tsdf.depth_max_m);
             snap_flying_pixels(&mut frame, &guidance.missing, camera, plane.as_ref(), &cfg);
         }
-        if self.config.carve_free_space {
+        if invented && self.config.carve_free_space {
             let plane = self.ground_plane()?;
             // the sources and the seed frame, the one real view
             let seed = match self.keyframes.cameras().first().copied() {
@@ -256,7 +258,7 @@ impl<R: Refiner> WorldGenerator<R> {
             let cfg = FreeSpaceConfig::new(self.config.tsdf.depth_max_m);
             carve_invented(&mut frame, &guidance.missing, camera, &views, plane.as_ref(), &cfg);
         }
-        if let Some(tolerance_m) = self.config.ground_snap_m {
+        if let Some(tolerance_m) = self.config.ground_snap_m.filter(|_| invented) {
             if let Some(plane) = self.ground_plane()? {
                 let cfg = GroundSnapConfig {
                     flatten_below_m: self.config.ground_flatten_m,
@@ -265,7 +267,7 @@ impl<R: Refiner> WorldGenerator<R> {
                 snap_to_ground(&mut frame, &guidance.missing, camera, &plane, &cfg);
             }
         }
-        if self.config.max_object_m2 > 0.0 || self.config.max_object_length_m > 0.0 {
+        if invented && (self.config.max_object_m2 > 0.0 || self.config.max_object_length_m > 0.0) {
             if let Some(plane) = self.ground_plane()? {
                 let cfg = ObjectCapConfig {
                     max_length_m: self.config.max_object_length_m,
@@ -277,7 +279,7 @@ impl<R: Refiner> WorldGenerator<R> {
         timings.refine_ms = t.lap();
         // fuse the new frame into the map, once
         self.map.integrate(&frame, camera);
-        if self.config.solid_max_m > 0.0 {
+        if invented && self.config.solid_max_m > 0.0 {
             if let Some(plane) = self.ground_plane()? {
                 let cfg = SolidConfig::new(2.0 * self.config.tsdf.trunc_m(), self.config.solid_max_m);
                 let thickness = object_thickness(&frame, &guidance.missing, camera, &plane, &cfg);

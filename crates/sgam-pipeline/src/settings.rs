@@ -41,8 +41,8 @@ pub const DEFAULT_CELLS_PER_PASS: usize = 8;
 /// Chosen on the line, Google Earth's own path: on the zig-zag and the spiral tiles score worse
 /// by KID, and on the spiral a roof grows step by step (docs/STATUS.md, session 23).
 pub const DEFAULT_QUILT_TILE: usize = 8;
-/// Default of `--max-passes`: the refiner's own ([`sgam_model::RefinerOptions`]), 4 since session 10.
-pub const DEFAULT_MAX_PASSES: usize = 4;
+/// Default of `--max-passes`: the refiner's own, 4 since session 10.
+pub const DEFAULT_MAX_PASSES: usize = sgam_model::refiner::DEFAULT_MAX_PASSES;
 /// Default of `--hue-coherence`, nats: off.
 pub const DEFAULT_HUE_COHERENCE: f32 = 0.0;
 /// Default of `--top-k`: 0, all codes (the trained distribution).
@@ -511,11 +511,12 @@ pub struct SamplingSettings {
     /// coherent, and each pass costs a run of the model (the context's transformer).
     #[arg(long, default_value_t = DEFAULT_MAX_PASSES)]
     pub max_passes: usize,
-    /// Hue coherence of a context model's draws, nats (0 = off): with two-level sampling, a
-    /// missing cell that draws a coloured code next to cells already coloured pays up to this
-    /// much for a hue turned away from theirs, so an object keeps one colour across its cells.
-    /// How often cells start objects is unchanged.
-    #[arg(long, default_value_t = DEFAULT_HUE_COHERENCE, value_name = "NATS")]
+    /// Hue coherence of a context model's draws (0 = off): with two-level sampling, a missing
+    /// cell that draws a coloured code next to cells already coloured pays up to this much for
+    /// a hue turned away from theirs, so an object keeps one colour across its cells. In the
+    /// model's logit units, which --within-temperature divides. How often cells start objects
+    /// is unchanged; a code bank, a model without a context or --within-temperature 0 ignore it.
+    #[arg(long, default_value_t = DEFAULT_HUE_COHERENCE, value_name = "LOGITS")]
     pub hue_coherence: f32,
     /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
     /// guidance is kept where it was observed and the model fills only the missing pixels.
@@ -953,8 +954,8 @@ impl RunSettings {
         }
     }
 
-    /// The run these settings describe, every default applied: the seed's preset (CLEVR or
-    /// Google Earth) fills the map and path options left out.
+    /// The run these settings describe, every default applied: the seed's preset (CLEVR, Google
+    /// Earth or RGB-D) fills the map, path and invented-object options left out.
     pub fn resolve(&self) -> Result<RunConfig> {
         let seed = self.seed.spec()?;
         let preset = seed.preset();

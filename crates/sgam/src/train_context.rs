@@ -25,18 +25,23 @@ pub struct ContextArgs {
     #[command(flatten)]
     pub common: crate::train_common::TrainLoopArgs,
     /// Generative model whose encoder, code head, codebook and decoder are kept (default: the
-    /// bundled model). When it has a context, that context is the starting point.
+    /// bundled model). When it has a context (the bundled one does), that context is the
+    /// starting point, unless --new-context.
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// Token width of a new context.
-    #[arg(long, default_value_t = 128)]
-    pub dim: usize,
-    /// Transformer blocks of a new context.
-    #[arg(long, default_value_t = 4)]
-    pub layers: usize,
-    /// Attention heads of a new context.
-    #[arg(long, default_value_t = 4)]
-    pub heads: usize,
+    /// Start a new context (--dim, --layers, --heads) even when the model has one: its
+    /// context is left out and the new one trained on the same autoencoder.
+    #[arg(long)]
+    pub new_context: bool,
+    /// Token width of a new context [default: 128].
+    #[arg(long)]
+    pub dim: Option<usize>,
+    /// Transformer blocks of a new context [default: 4].
+    #[arg(long)]
+    pub layers: Option<usize>,
+    /// Attention heads of a new context [default: 4].
+    #[arg(long)]
+    pub heads: Option<usize>,
     /// Linear learning-rate warm-up, steps.
     #[arg(long, default_value_t = 200)]
     pub warmup: u64,
@@ -58,7 +63,8 @@ pub struct ContextArgs {
     #[arg(long, value_delimiter = ',', default_value = "40", value_name = "STEPS[,STEPS..]")]
     pub steps_per_run: Vec<usize>,
     /// Take the recorded pairs of another run folder (recorded with the same --pairs,
-    /// --val-pairs, --crop, --scenes, --steps-per-run, --seed and --closed-loop) instead of
+    /// --val-pairs, --crop, --scenes, --steps-per-run, --seed, --closed-loop and
+    /// --closed-loop-filters) instead of
     /// recording them: ablations on the same data, at once. Closed-loop pairs must have been
     /// recorded by this run's starting model (--model), unless --pairs-from-any-model.
     #[arg(long, value_name = "RUN")]
@@ -113,6 +119,9 @@ fn validate(a: &ContextArgs) -> Result<()> {
     if !(a.closed_loop.is_finite() && (0.0..=1.0).contains(&a.closed_loop)) {
         bail!("--closed-loop {} must be a share between 0 and 1", a.closed_loop);
     }
+    if a.closed_loop_filters && a.closed_loop <= 0.0 {
+        bail!("--closed-loop-filters applies to closed-loop runs: give --closed-loop SHARE too");
+    }
     if !(a.closed_loop_steps.is_finite() && a.closed_loop_steps > 0.0 && a.closed_loop_steps <= 1.0) {
         bail!("--closed-loop-steps {} must be a share above 0 and at most 1", a.closed_loop_steps);
     }
@@ -157,7 +166,7 @@ pub fn run(a: &ContextArgs) -> Result<()> {
             None => BUNDLED_MODEL.to_vec(),
         };
         let what = a.model.as_ref().map_or("the bundled model".to_string(), |p| p.display().to_string());
-        let (tensors, meta) = from_safetensors_bytes(&bytes).with_context(|| what.clone())?;
+        let (mut tensors, meta) = from_safetensors_bytes(&bytes).with_context(|| what.clone())?;
         let json = meta
             .get(sgam_model::refiner::CONFIG_METADATA_KEY)
             .with_context(|| format!("{what}: carries no model config"))?;
@@ -166,8 +175,27 @@ pub fn run(a: &ContextArgs) -> Result<()> {
         if !cfg.code_head {
             bail!("{what}: not a generative model with a code head (train one with `sgam train sampler`)");
         }
-        if cfg.context.is_none() {
-            let c = ContextConfig { dim: a.dim, layers: a.layers, heads: a.heads, ..ContextConfig::default() };
+        let sized = a.dim.is_some() || a.layers.is_some() || a.heads.is_some();
+        if let (Some(c), false) = (&cfg.context, a.new_context) {
+            if sized {
+                bail!(
+                    "{what} already has a context ({} wide, {} blocks, {} heads), which this run would continue: \
+                     --dim / --layers / --heads size a new one (add --new-context to leave it out and start one)",
+                    c.dim,
+                    c.layers,
+                    c.heads
+                );
+            }
+        } else {
+            // a new context on the model's autoencoder: the old one's weights are left out
+            tensors.retain(|name, _| !name.starts_with("context."));
+            let d = ContextConfig::default();
+            let c = ContextConfig {
+                dim: a.dim.unwrap_or(d.dim),
+                layers: a.layers.unwrap_or(d.layers),
+                heads: a.heads.unwrap_or(d.heads),
+                ..d
+            };
             c.validate().context("--dim / --layers / --heads")?;
             cfg.context = Some(c);
         }

@@ -126,7 +126,7 @@ pub(crate) struct PairSpec<'a> {
 /// The options a pair cache was recorded with (named by the errors when they differ).
 const RECORDING_OPTIONS: &str =
     "--pairs / --val-pairs / --crop / --scenes / --steps-per-run / --seed / --closed-loop / --closed-loop-steps / \
-     closed-loop --model";
+     --closed-loop-filters / closed-loop --model";
 
 /// `n` training pairs of stream `stream`, recorded from the generator with the oracle on
 /// training scenes (targets from `target`), deterministic from the spec's seed; cached in

@@ -156,6 +156,7 @@ fn tiny_context_args<'a>(run: &'a str, steps: &'a str) -> Vec<&'a str> {
         "context",
         "--run",
         run,
+        "--new-context",
         "--dim",
         "16",
         "--layers",
@@ -181,6 +182,40 @@ fn tiny_context_args<'a>(run: &'a str, steps: &'a str) -> Vec<&'a str> {
         "--scenes",
         "3",
     ]
+}
+
+/// [`tiny_context_args`] for a model that has the tiny context already: no new one, no sizes.
+fn continuing(args: Vec<&str>) -> Vec<&str> {
+    let mut out = Vec::new();
+    let mut it = args.into_iter();
+    while let Some(a) = it.next() {
+        match a {
+            "--new-context" => {}
+            "--dim" | "--layers" | "--heads" => {
+                it.next();
+            }
+            _ => out.push(a),
+        }
+    }
+    out
+}
+
+#[test]
+fn context_training_refuses_sizes_it_would_ignore_and_filters_without_a_closed_loop() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = tmp.path().join("ctx");
+    let r = run.to_str().unwrap();
+    // the bundled model has a context: sizing another without --new-context is refused
+    let mut args = tiny_context_args(r, "1");
+    args.retain(|a| *a != "--new-context");
+    let out = sgam(&args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("already has a context") && err.contains("--new-context"), "{err}");
+    let mut args = tiny_context_args(r, "1");
+    args.push("--closed-loop-filters");
+    let out = sgam(&args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--closed-loop-filters"), "{err}");
 }
 
 #[test]
@@ -243,14 +278,17 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     // closed-loop pairs are named by the model that recorded them: a run from another model
     // refuses them, a run from the same model takes them
     let closed = tmp.path().join("ctx-closed");
-    let mut d: Vec<&str> = args("1").into_iter().map(|x| if x == r { closed.to_str().unwrap() } else { x }).collect();
+    let mut d: Vec<&str> =
+        continuing(args("1")).into_iter().map(|x| if x == r { closed.to_str().unwrap() } else { x }).collect();
     d.extend(["--closed-loop", "1", "--model", out.to_str().unwrap()]);
     ok(&d);
     // (the other run starts from the bundled model)
     for (name, model) in [("ctx-same", Some(out.to_str().unwrap())), ("ctx-other", None)] {
         let takes = model.is_some();
         let dir = tmp.path().join(name);
-        let mut e: Vec<&str> = args("1").into_iter().map(|x| if x == r { dir.to_str().unwrap() } else { x }).collect();
+        // the same model continues its context; the bundled one gets a new tiny one
+        let base = if takes { continuing(args("1")) } else { args("1") };
+        let mut e: Vec<&str> = base.into_iter().map(|x| if x == r { dir.to_str().unwrap() } else { x }).collect();
         e.extend(["--closed-loop", "1", "--pairs-from", closed.to_str().unwrap()]);
         e.extend(model.map(|m| ["--model", m]).into_iter().flatten());
         let out = sgam(&e);
