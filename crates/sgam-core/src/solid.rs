@@ -267,24 +267,37 @@ pub fn cap_invented_objects(
 /// The length of a footprint along its principal axis, metres: `sqrt(12 lambda_max)` of the
 /// covariance of its cells' centres (`cell_m` a side), the length of a uniform bar.
 fn footprint_length_m(cells: &std::collections::HashSet<(i64, i64)>, cell_m: f32) -> f32 {
-    let n = cells.len() as f64;
-    if n < 2.0 {
+    if cells.len() < 2 {
         return cell_m;
     }
-    let (sx, sy) = cells.iter().fold((0.0, 0.0), |(x, y), &(a, b)| (x + a as f64, y + b as f64));
+    let [lambda, _] = principal_variances(cells.iter().map(|&(a, b)| [a, b])).unwrap_or_default();
+    ((12.0 * lambda).sqrt() * cell_m as f64) as f32
+}
+
+/// The principal variances `[lambda_max, lambda_min]` of lattice cells' centres: the
+/// eigenvalues of their 2x2 covariance (population, in cells squared); `None` without cells.
+/// The size cap's footprint length ([`cap_invented_objects`]) and `eval world`'s elongation
+/// (`sgam_metrics::world::object_shape`) both read a footprint's shape from it.
+pub fn principal_variances<I>(cells: I) -> Option<[f64; 2]>
+where
+    I: Iterator<Item = [i64; 2]> + Clone,
+{
+    let n = cells.clone().count() as f64;
+    if n == 0.0 {
+        return None;
+    }
+    let (sx, sy) = cells.clone().fold((0.0, 0.0), |(x, y), [a, b]| (x + a as f64, y + b as f64));
     let (mx, my) = (sx / n, sy / n);
     let (mut xx, mut xy, mut yy) = (0.0, 0.0, 0.0);
-    for &(a, b) in cells {
+    for [a, b] in cells {
         let (dx, dy) = (a as f64 - mx, b as f64 - my);
         xx += dx * dx;
         xy += dx * dy;
         yy += dy * dy;
     }
     let (xx, xy, yy) = (xx / n, xy / n, yy / n);
-    // the larger eigenvalue of [[xx, xy], [xy, yy]]
-    let half = 0.5 * (xx + yy);
-    let lambda = half + (0.25 * (xx - yy) * (xx - yy) + xy * xy).sqrt();
-    ((12.0 * lambda).sqrt() * cell_m as f64) as f32
+    let (half_trace, radius) = (0.5 * (xx + yy), (0.25 * (xx - yy) * (xx - yy) + xy * xy).sqrt());
+    Some([half_trace + radius, half_trace - radius])
 }
 
 #[cfg(test)]

@@ -276,18 +276,13 @@ pub fn object_shape(cells: &[[i64; 2]]) -> Option<ObjectShape> {
     if cells.is_empty() || hull_cells <= 0 {
         return None;
     }
-    // covariance in cell units: the uniform cell's variance is 1/12 (cell_m^2 / 12 in metres;
-    // the ratio of eigenvalues does not depend on the unit)
-    let mean = cells.iter().fold([0.0f64; 2], |m, c| [m[0] + c[0] as f64 / n, m[1] + c[1] as f64 / n]);
-    let (mut xx, mut yy, mut xy) = (1.0 / 12.0, 1.0 / 12.0, 0.0);
-    for c in &cells {
-        let (dx, dy) = (c[0] as f64 - mean[0], c[1] as f64 - mean[1]);
-        (xx, yy, xy) = (xx + dx * dx / n, yy + dy * dy / n, xy + dx * dy / n);
-    }
-    let (half_trace, radius) = (0.5 * (xx + yy), (0.25 * (xx - yy).powi(2) + xy * xy).sqrt());
+    // covariance in cell units plus the uniform cell's variance, 1/12 (cell_m^2 / 12 in metres;
+    // the ratio of eigenvalues does not depend on the unit), which adds 1/12 to each eigenvalue
+    let [major, minor] = sgam_core::solid::principal_variances(cells.iter().copied())?;
+    let cell = 1.0 / 12.0;
     Some(ObjectShape {
         solidity: (n / hull_cells as f64) as f32,
-        elongation: ((half_trace + radius) / (half_trace - radius)).sqrt() as f32,
+        elongation: ((major + cell) / (minor + cell)).sqrt() as f32,
     })
 }
 

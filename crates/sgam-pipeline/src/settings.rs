@@ -43,7 +43,7 @@ pub const DEFAULT_CELLS_PER_PASS: usize = 8;
 pub const DEFAULT_QUILT_TILE: usize = 8;
 /// Default of `--max-passes`: the refiner's own, 4 since session 10.
 pub const DEFAULT_MAX_PASSES: usize = sgam_model::refiner::DEFAULT_MAX_PASSES;
-/// Default of `--hue-coherence`, nats: off.
+/// Default of `--hue-coherence`: off.
 pub const DEFAULT_HUE_COHERENCE: f32 = 0.0;
 /// Default of `--top-k`: 0, all codes (the trained distribution).
 pub const DEFAULT_TOP_K: usize = 0;

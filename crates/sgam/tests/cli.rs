@@ -258,13 +258,13 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     assert_eq!(steps, [0, 2, 4, 6], "{val}");
     // another run trains on the same pairs at once; pairs of other options are refused by name
     let other = tmp.path().join("ctx-b");
-    let mut b: Vec<&str> = args("1").into_iter().map(|x| if x == r { other.to_str().unwrap() } else { x }).collect();
+    let mut b = tiny_context_args(other.to_str().unwrap(), "1");
     b.extend(["--pairs-from", r]);
     let err = ok(&b);
     assert!(err.contains("taken from") && !err.contains("recording"), "{err}");
     assert_eq!(std::fs::read(other.join("pairs-1.bin")).unwrap(), std::fs::read(run.join("pairs-1.bin")).unwrap());
     let third = tmp.path().join("ctx-c");
-    let mut c: Vec<&str> = args("1").into_iter().map(|x| if x == r { third.to_str().unwrap() } else { x }).collect();
+    let mut c = tiny_context_args(third.to_str().unwrap(), "1");
     let pos = c.iter().position(|x| *x == "--pairs").unwrap();
     c[pos + 1] = "12";
     c.extend(["--pairs-from", r]);
@@ -278,8 +278,7 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     // closed-loop pairs are named by the model that recorded them: a run from another model
     // refuses them, a run from the same model takes them
     let closed = tmp.path().join("ctx-closed");
-    let mut d: Vec<&str> =
-        continuing(args("1")).into_iter().map(|x| if x == r { closed.to_str().unwrap() } else { x }).collect();
+    let mut d = continuing(tiny_context_args(closed.to_str().unwrap(), "1"));
     d.extend(["--closed-loop", "1", "--model", out.to_str().unwrap()]);
     ok(&d);
     // (the other run starts from the bundled model)
@@ -287,8 +286,8 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
         let takes = model.is_some();
         let dir = tmp.path().join(name);
         // the same model continues its context; the bundled one gets a new tiny one
-        let base = if takes { continuing(args("1")) } else { args("1") };
-        let mut e: Vec<&str> = base.into_iter().map(|x| if x == r { dir.to_str().unwrap() } else { x }).collect();
+        let base = tiny_context_args(dir.to_str().unwrap(), "1");
+        let mut e = if takes { continuing(base) } else { base };
         e.extend(["--closed-loop", "1", "--pairs-from", closed.to_str().unwrap()]);
         e.extend(model.map(|m| ["--model", m]).into_iter().flatten());
         let out = sgam(&e);
@@ -298,7 +297,7 @@ fn context_training_runs_on_the_kernels_and_resumes_across_engines() {
     }
     // ... unless told to take them from any model (a context of another size on the same pairs)
     let dir = tmp.path().join("ctx-any");
-    let mut e: Vec<&str> = args("1").into_iter().map(|x| if x == r { dir.to_str().unwrap() } else { x }).collect();
+    let mut e = tiny_context_args(dir.to_str().unwrap(), "1");
     e.extend(["--closed-loop", "1", "--pairs-from", closed.to_str().unwrap(), "--pairs-from-any-model"]);
     let layers = e.iter().position(|x| *x == "--layers").unwrap();
     e[layers + 1] = "2";
