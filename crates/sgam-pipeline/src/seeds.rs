@@ -33,6 +33,12 @@ pub struct Preset {
     pub max_object_m2: f32,
     /// Guard rail on invented objects' length, metres (0 = off; `--max-object-length`).
     pub max_object_length_m: f32,
+    /// Quilting the seed's own pixels (`--bank seed`): a hole wider than this many latent cells
+    /// is quilted as tiles of this side (`--quilt-tile`).
+    pub quilt_tile: usize,
+    /// Quilting the seed's own pixels: the thin bands a moving camera uncovers wait until they
+    /// reach this many latent cells into the frame (`--bands-wait auto`).
+    pub quilt_bands_wait: usize,
 }
 
 /// CLEVR-Infinite: 0.408 m steps (half the dataset spacing), 5 sources within 1 m, 5 cm voxels,
@@ -53,10 +59,15 @@ pub const CLEVR: Preset = Preset {
     solid_objects_m: 1.0,
     max_object_m2: 6.0,
     max_object_length_m: 0.0,
+    quilt_tile: crate::settings::DEFAULT_QUILT_TILE,
+    quilt_bands_wait: sgam_model::refiner::DEFAULT_BANDS_WAIT,
 };
 /// Google Earth: 2 cm steps, 3 sources within 0.3, 1 cm voxels, truncation 3 voxels. No solids
 /// and no size cap: a Google Earth seed's units are not metres, and its buildings are not
-/// CLEVR's primitives.
+/// CLEVR's primitives. The seed's pixels are quilted in 12-cell tiles, and the band the camera
+/// uncovers waits until it is 8 cells (64 px) deep: each piece then holds whole houses and
+/// trees, not a strip of road continued step after step into slanted streaks (docs/STATUS.md,
+/// session 31).
 pub const GOOGLE_EARTH: Preset = Preset {
     step_m: 0.02,
     k_sources: 3,
@@ -66,10 +77,13 @@ pub const GOOGLE_EARTH: Preset = Preset {
     solid_objects_m: 0.0,
     max_object_m2: 0.0,
     max_object_length_m: 0.0,
+    quilt_tile: 12,
+    quilt_bands_wait: 8,
 };
-/// A user's RGB-D frame: CLEVR's map and sources (the step follows the seed's depth,
+/// A user's RGB-D frame: CLEVR's map, sources and quilting (the step follows the seed's depth,
 /// `sgam generate --help`), without solids or the size cap, which are sized for
-/// CLEVR-Infinite's objects.
+/// CLEVR-Infinite's objects. (Google Earth's longer wait and larger tiles scored worse on the
+/// 7-Scenes frame, whose forward path uncovers bands on every side: docs/STATUS.md, session 31.)
 pub const RGBD: Preset = Preset { solid_objects_m: 0.0, max_object_m2: 0.0, max_object_length_m: 0.0, ..CLEVR };
 
 /// Where a run's seed frame comes from.

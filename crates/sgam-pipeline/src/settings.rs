@@ -35,11 +35,12 @@ pub const DEFAULT_WITHIN_TEMPERATURE: f32 = 0.6;
 /// 20-60 new cells take 3-4 passes instead of one, so the cells of one new object see each
 /// other's draws.
 pub const DEFAULT_CELLS_PER_PASS: usize = 8;
-/// Default of `--quilt-tile`, latent cells: chosen between 0 (whole holes, the stripes), 4 and 8
-/// on the three Google Earth seeds and the 7-Scenes frame (60 steps, two run seeds each;
-/// docs/MODEL.md, session 22). 4 let smooth textures (a road, a lawn) spread over the new area.
-/// Chosen on the line, Google Earth's own path: on the zig-zag and the spiral tiles score worse
-/// by KID, and on the spiral a roof grows step by step (docs/STATUS.md, session 23).
+/// `--quilt-tile` of the CLEVR and RGB-D presets, latent cells: chosen between 0 (whole holes,
+/// the stripes), 4 and 8 on the three Google Earth seeds and the 7-Scenes frame (60 steps, two
+/// run seeds each; docs/MODEL.md, session 22). 4 let smooth textures (a road, a lawn) spread over
+/// the new area. Chosen on the line, Google Earth's own path: on the zig-zag and the spiral
+/// tiles score worse by KID, and on the spiral a roof grows step by step (docs/STATUS.md,
+/// session 23). The Google Earth preset quilts in 12-cell tiles ([`crate::seeds::GOOGLE_EARTH`]).
 pub const DEFAULT_QUILT_TILE: usize = 8;
 /// Default of `--max-passes`: the refiner's own, 4 since session 10.
 pub const DEFAULT_MAX_PASSES: usize = sgam_model::refiner::DEFAULT_MAX_PASSES;
@@ -383,7 +384,7 @@ pub struct RefinerSettings {
     /// Complete each hole from a bank of true frames' codes instead of sampling it
     /// (auto, none, bundled, seed, or a file from `sgam train bank`): the hole takes the codes
     /// of the real frame whose cells around it look most like the visible ones, so it holds
-    /// whole objects; thin bands along the frame's border wait until they are 3 cells wide.
+    /// whole objects; thin bands along the frame's border wait (--bands-wait).
     /// auto: none for a CLEVR-Infinite seed (the bundled model's context draws the holes; it
     /// beat the bundled bank on the held-out worlds, docs/STATUS.md), seed for a Google Earth
     /// or RGB-D seed. The bank must come from the same model (checked). bundled
@@ -459,7 +460,7 @@ impl RefinerSettings {
 /// `--bands-wait`: how deep a hole at the frame's border must be before it is filled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum BandsWait {
-    /// 3 cells for a code bank's holes, 0 for the model's own draws.
+    /// The seed's preset with its own pixels, 3 cells for a code bank's holes, 0 for the model's own draws.
     Auto,
     /// This many cells for both (0: every hole is filled at once).
     Cells(usize),
@@ -533,16 +534,20 @@ pub struct SamplingSettings {
     /// RGB-D seed): a hole larger than N x N latent cells is quilted as N x N tiles, the tile
     /// with the most known surroundings first, each matched on the pixels around it (tiles
     /// quilted before it included) at pixel offsets of up to half a cell; the thin bands a
-    /// moving camera uncovers wait, row by row and column by column, until they are 3 cells
-    /// deep. A band then continues what borders it piece by piece, not as one long strip of
-    /// one place. 0 = one piece per hole, as before (vertical stripes on Google Earth seeds).
-    #[arg(long, default_value_t = DEFAULT_QUILT_TILE)]
-    pub quilt_tile: usize,
+    /// moving camera uncovers wait, row by row and column by column (--bands-wait). A band then
+    /// continues what borders it piece by piece, not as one long strip of one place. 0 = one
+    /// piece per hole (vertical stripes on Google Earth seeds). Default: the seed's preset, 12
+    /// for a Google Earth seed, 8 otherwise.
+    #[arg(long, value_name = "CELLS")]
+    pub quilt_tile: Option<usize>,
     /// A hole along the frame's border that reaches fewer than N latent cells (8 px each) into
     /// the frame waits: it keeps a provisional colour and no depth, nothing is fused there, and
     /// it widens step by step until a whole object fits, instead of committing a sliver of one
-    /// that the next step must continue. auto: 3 for a bank's holes, 0 (fill at once) for the
-    /// model's own draws, where waiting grew larger mounds (docs/MODEL.md, session 29).
+    /// that the next step must continue. auto: with the seed's own pixels (--bank seed), the
+    /// seed's preset, 8 for a Google Earth seed (a piece then holds whole houses and trees, not a
+    /// strip of road continued into slanted streaks), 3 otherwise; 3 for a code bank's holes; 0
+    /// (fill at once) for the model's own draws, where waiting grew larger mounds (docs/MODEL.md,
+    /// session 29).
     #[arg(long, default_value_t = BandsWait::Auto, value_name = "CELLS|auto")]
     pub bands_wait: BandsWait,
     /// Run seed (sampling in the refiner): another seed grows another world.
@@ -561,7 +566,7 @@ impl Default for SamplingSettings {
             hue_coherence: DEFAULT_HUE_COHERENCE,
             regenerate_observed: false,
             whole_objects: false,
-            quilt_tile: DEFAULT_QUILT_TILE,
+            quilt_tile: None,
             bands_wait: BandsWait::Auto,
             seed: 0,
         }
@@ -577,14 +582,17 @@ impl SamplingSettings {
         in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
         in_range("--max-passes", self.max_passes, 1..=64)?;
         in_range("--hue-coherence", self.hue_coherence, 0.0..=100.0)?;
-        in_range("--quilt-tile", self.quilt_tile, 0..=64)?;
+        if let Some(tile) = self.quilt_tile {
+            in_range("--quilt-tile", tile, 0..=64)?;
+        }
         if let BandsWait::Cells(n) = self.bands_wait {
             in_range("--bands-wait", n, 0..=16)?;
         }
         Ok(())
     }
 
-    /// The learned refiner's options.
+    /// The learned refiner's options, with the CLEVR preset's quilting where the options leave
+    /// it to the seed ([`RunSettings::resolve`] gives the seed's own).
     pub fn refiner_options(&self) -> sgam_model::RefinerOptions {
         sgam_model::RefinerOptions {
             sampling: crate::sampling(self.temperature, self.top_k),
@@ -595,7 +603,7 @@ impl SamplingSettings {
             hue_coherence: self.hue_coherence,
             within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
             whole_objects: self.whole_objects,
-            quilt_tile: self.quilt_tile,
+            quilt_tile: self.quilt_tile.unwrap_or(DEFAULT_QUILT_TILE),
             bands_wait: match self.bands_wait {
                 BandsWait::Auto => None,
                 BandsWait::Cells(n) => Some(n),
@@ -974,8 +982,13 @@ impl RunSettings {
         let invents = self.refiner.effective() != RefinerKind::Oracle;
         let p = &self.invented;
         let refiner = match self.refiner_spec() {
-            RefinerSpec::Model { model, options, bank, adapt_s } => {
+            RefinerSpec::Model { model, mut options, bank, adapt_s } => {
                 let bank = bank.resolve_for(&seed);
+                // quilting the seed's pixels: its preset's tiles and bands
+                options.quilt_tile = self.sampling.quilt_tile.unwrap_or(preset.quilt_tile);
+                if bank == BankSpec::Seed && self.sampling.bands_wait == BandsWait::Auto {
+                    options.bands_wait = Some(preset.quilt_bands_wait);
+                }
                 RefinerSpec::Model { model, options, bank, adapt_s }
             }
             other => other,
@@ -1204,10 +1217,38 @@ mod tests {
             other => panic!("{other:?}"),
         };
         assert_eq!(tile(&user), DEFAULT_QUILT_TILE);
-        user.sampling.quilt_tile = 0;
+        user.sampling.quilt_tile = Some(0);
         assert_eq!(tile(&user), 0, "given, it is used");
-        user.sampling.quilt_tile = 65;
+        user.sampling.quilt_tile = Some(65);
         assert!(user.validate().unwrap_err().to_string().contains("--quilt-tile"));
+    }
+
+    #[test]
+    fn quilting_a_seeds_pixels_follows_its_preset() {
+        let quilting = |s: &RunSettings| match s.resolve().unwrap().refiner {
+            RefinerSpec::Model { options, .. } => (options.quilt_tile, options.bands_wait),
+            other => panic!("{other:?}"),
+        };
+        let mut ge = RunSettings::default();
+        ge.seed.seed_google_earth = Some("ge/seed0".into());
+        assert_eq!(
+            quilting(&ge),
+            (crate::seeds::GOOGLE_EARTH.quilt_tile, Some(crate::seeds::GOOGLE_EARTH.quilt_bands_wait))
+        );
+        assert_ne!(crate::seeds::GOOGLE_EARTH.quilt_bands_wait, crate::seeds::RGBD.quilt_bands_wait);
+        // given, the options win
+        ge.sampling.quilt_tile = Some(4);
+        ge.sampling.bands_wait = BandsWait::Cells(2);
+        assert_eq!(quilting(&ge), (4, Some(2)));
+        // the model's own draws (--bank none) keep the refiner's auto: no band waits for them
+        ge.sampling.bands_wait = BandsWait::Auto;
+        ge.refiner.bank = BankSpec::None;
+        assert_eq!(quilting(&ge).1, None);
+        // a CLEVR-Infinite seed keeps the refiner's auto too (3 cells with a code bank, 0 without)
+        let mut clevr = RunSettings::default();
+        assert_eq!(quilting(&clevr), (DEFAULT_QUILT_TILE, None));
+        clevr.refiner.bank = BankSpec::Bundled;
+        assert_eq!(quilting(&clevr).1, None);
     }
 
     #[test]

@@ -283,6 +283,7 @@ mod tests {
             "solid-objects" => format!("{} (CLEVR preset)", p.solid_objects_m),
             "max-object-m2" => format!("{} (CLEVR preset)", p.max_object_m2),
             "max-object-length" => format!("{} (CLEVR preset)", p.max_object_length_m),
+            "quilt-tile" => format!("{} (CLEVR preset)", p.quilt_tile),
             _ => return None,
         })
     }
