@@ -308,9 +308,11 @@ pub fn collect(
 /// project's 2, where one run at a time recorded 6.5).
 const RUNS_PER_BATCH: usize = 16;
 
-/// Version of the pairs' stream and cache format (3: runs recorded in parallel batches, each
-/// run on its own stream; 2: all six trajectory shapes).
-pub const CACHE_VERSION: u32 = 3;
+/// Version of the pairs' stream and cache format (4: closed-loop runs may pass generation's
+/// invented-pixel filters, [`CacheKey::closed_loop_filters`], a field a binary before it would
+/// ignore and so take a filtered cache for an unfiltered one; 3: runs recorded in parallel
+/// batches, each run on its own stream; 2: all six trajectory shapes).
+pub const CACHE_VERSION: u32 = 4;
 
 /// What a pair cache was recorded with; a cache is used only when all of it matches.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]

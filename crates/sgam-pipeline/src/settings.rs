@@ -40,7 +40,8 @@ pub const DEFAULT_CELLS_PER_PASS: usize = 8;
 /// run seeds each; docs/MODEL.md, session 22). 4 let smooth textures (a road, a lawn) spread over
 /// the new area. Chosen on the line, Google Earth's own path: on the zig-zag and the spiral
 /// tiles score worse by KID, and on the spiral a roof grows step by step (docs/STATUS.md,
-/// session 23). The Google Earth preset quilts in 12-cell tiles ([`crate::seeds::GOOGLE_EARTH`]).
+/// session 23). Superseded for Google Earth seeds in session 31: 12-cell tiles
+/// ([`crate::seeds::GOOGLE_EARTH`]); the 7-Scenes frame kept 8.
 pub const DEFAULT_QUILT_TILE: usize = 8;
 /// Default of `--max-passes`: the refiner's own, 4 since session 10.
 pub const DEFAULT_MAX_PASSES: usize = sgam_model::refiner::DEFAULT_MAX_PASSES;
@@ -984,9 +985,12 @@ impl RunSettings {
         let refiner = match self.refiner_spec() {
             RefinerSpec::Model { model, mut options, bank, adapt_s } => {
                 let bank = bank.resolve_for(&seed);
-                // quilting the seed's pixels: its preset's tiles and bands
+                // quilting the seed's pixels: its preset's tiles and bands (a preset that waits
+                // as long as the refiner's own auto leaves it to the refiner, so such a run's
+                // config is the one it had before presets said how to quilt)
                 options.quilt_tile = self.sampling.quilt_tile.unwrap_or(preset.quilt_tile);
-                if bank == BankSpec::Seed && self.sampling.bands_wait == BandsWait::Auto {
+                let own_wait = preset.quilt_bands_wait != sgam_model::refiner::DEFAULT_BANDS_WAIT;
+                if bank == BankSpec::Seed && self.sampling.bands_wait == BandsWait::Auto && own_wait {
                     options.bands_wait = Some(preset.quilt_bands_wait);
                 }
                 RefinerSpec::Model { model, options, bank, adapt_s }
@@ -1231,11 +1235,7 @@ mod tests {
         };
         let mut ge = RunSettings::default();
         ge.seed.seed_google_earth = Some("ge/seed0".into());
-        assert_eq!(
-            quilting(&ge),
-            (crate::seeds::GOOGLE_EARTH.quilt_tile, Some(crate::seeds::GOOGLE_EARTH.quilt_bands_wait))
-        );
-        assert_ne!(crate::seeds::GOOGLE_EARTH.quilt_bands_wait, crate::seeds::RGBD.quilt_bands_wait);
+        assert_eq!(quilting(&ge), (12, Some(8)), "Google Earth: 12-cell tiles, bands wait until 8 cells deep");
         // given, the options win
         ge.sampling.quilt_tile = Some(4);
         ge.sampling.bands_wait = BandsWait::Cells(2);
@@ -1244,11 +1244,23 @@ mod tests {
         ge.sampling.bands_wait = BandsWait::Auto;
         ge.refiner.bank = BankSpec::None;
         assert_eq!(quilting(&ge).1, None);
-        // a CLEVR-Infinite seed keeps the refiner's auto too (3 cells with a code bank, 0 without)
+        // an RGB-D seed quilts in 8-cell tiles and leaves the wait to the refiner (3 cells)
+        let dir = tempfile::tempdir().unwrap();
+        let (rgb, depth) = (dir.path().join("rgb.png"), dir.path().join("d.npy"));
+        sgam_io::write_rgb_png(&rgb, &sgam_core::Image::filled(32, 32, [0.5f32; 3])).unwrap();
+        sgam_io::write_npy_f32(&depth, &sgam_core::Image::filled(32, 32, 2.0f32)).unwrap();
+        let mut user = RunSettings::default();
+        (user.seed.seed_rgb, user.seed.seed_depth) = (Some(rgb), Some(depth));
+        user.seed.intrinsics = Some([30.0, 30.0, 16.0, 16.0]);
+        assert_eq!(quilting(&user), (8, None));
+        assert_eq!(sgam_model::refiner::DEFAULT_BANDS_WAIT, 3);
+        // a CLEVR-Infinite seed keeps the refiner's auto too (3 cells with any bank, 0 without)
         let mut clevr = RunSettings::default();
         assert_eq!(quilting(&clevr), (DEFAULT_QUILT_TILE, None));
-        clevr.refiner.bank = BankSpec::Bundled;
-        assert_eq!(quilting(&clevr).1, None);
+        for bank in [BankSpec::Bundled, BankSpec::Seed] {
+            clevr.refiner.bank = bank;
+            assert_eq!(quilting(&clevr).1, None);
+        }
     }
 
     #[test]

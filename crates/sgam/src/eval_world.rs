@@ -157,8 +157,13 @@ impl WorldArgs {
             // worlds grown before --bands-wait existed: a bank's holes waited below 3 cells,
             // the model's own draws never
             let banked = !matches!(bank, sgam_pipeline::BankSpec::None | sgam_pipeline::BankSpec::Auto);
+            let auto_wait = match bank {
+                sgam_pipeline::BankSpec::Seed => sgam_pipeline::CLEVR.quilt_bands_wait,
+                _ if banked => sgam_model::refiner::DEFAULT_BANDS_WAIT,
+                _ => 0,
+            };
             if let sgam_pipeline::settings::BandsWait::Cells(n) = s.bands_wait {
-                if n != if banked { sgam_model::refiner::DEFAULT_BANDS_WAIT } else { 0 } {
+                if n != auto_wait {
                     label.push_str(&format!("-bw{n}"));
                 }
             }

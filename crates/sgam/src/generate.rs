@@ -156,13 +156,14 @@ pub fn check_command_line(args: &GenerateArgs, given: &[String]) -> Result<()> {
 }
 
 /// The learned refiner `run` names (`None` for the stand-ins), with the code bank it resolves
-/// to, for the evaluation and benchmark commands that call a refiner directly.
+/// to, for the evaluation and benchmark commands that call a refiner directly. Resolved as a
+/// run is, so the seed's preset fills the options left to it (a Google Earth seed's quilting).
 pub fn model_refiner(run: &RunSettings) -> Result<Option<sgam_model::VqRefiner>> {
-    Ok(match run.refiner_spec() {
+    let resolved = run.resolve()?;
+    Ok(match resolved.refiner {
         RefinerSpec::Model { model, options, bank, .. } => {
             let mut r = sgam_pipeline::model_refiner(model.as_deref(), options)?;
-            let seed = run.seed.spec()?;
-            let bank = bank.resolve_for(&seed);
+            let seed = resolved.seed;
             // only the seed's own bank reads the seed frame
             let frame = match bank {
                 BankSpec::Seed => Some(seed.load()?),
