@@ -691,7 +691,12 @@ impl InventedPixelSettings {
     /// Checks the ground prior's tolerance.
     pub fn validate(&self) -> Result<()> {
         in_range("--ground-snap", self.ground_snap, 0.0..=10.0)?;
-        in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap.max(0.0))?;
+        // (with --ground-snap 0 the prior is off, and --ground-flatten with it)
+        if self.ground_snap > 0.0 {
+            in_range("--ground-flatten", self.ground_flatten, 0.0..=self.ground_snap)?;
+        } else {
+            in_range("--ground-flatten", self.ground_flatten, 0.0..=10.0)?;
+        }
         if let Some(m) = self.solid_objects {
             in_range("--solid-objects", m, 0.0..=10.0)?;
         }
@@ -1136,6 +1141,16 @@ mod tests {
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
         assert_eq!((c.solid_max_m, c.max_object_m2), (0.0, 0.0));
+        // --ground-snap 0 alone turns the prior off, its flattening with it
+        let mut off = RunSettings::clevr(7);
+        off.invented.ground_snap = 0.0;
+        let c = off.resolve().unwrap();
+        assert_eq!((c.ground_snap_m, c.ground_flatten_m), (None, 0.0));
+        off.validate().unwrap();
+        // with the prior on, flattening higher than it is refused by name
+        let mut high = RunSettings::clevr(7);
+        high.invented.ground_flatten = 1.5;
+        assert!(high.validate().unwrap_err().to_string().contains("--ground-flatten"));
     }
 
     #[test]
