@@ -47,6 +47,8 @@ pub const DEFAULT_QUILT_TILE: usize = 8;
 pub const DEFAULT_MAX_PASSES: usize = sgam_model::refiner::DEFAULT_MAX_PASSES;
 /// Default of `--hue-coherence`: off.
 pub const DEFAULT_HUE_COHERENCE: f32 = 0.0;
+/// Default of `--class-coherence`: off (an experiment, docs/MODEL.md session 31).
+pub const DEFAULT_CLASS_COHERENCE: f32 = 0.0;
 /// Default of `--top-k`: 0, all codes (the trained distribution).
 pub const DEFAULT_TOP_K: usize = 0;
 /// Default of `--ground-snap`, metres: below the shortest object of the synthetic world
@@ -520,6 +522,13 @@ pub struct SamplingSettings {
     /// is unchanged; a code bank, a model without a context or --within-temperature 0 ignore it.
     #[arg(long, default_value_t = DEFAULT_HUE_COHERENCE, value_name = "LOGITS")]
     pub hue_coherence: f32,
+    /// Class coherence of a context model's draws (0 = off): with two-level sampling, a missing
+    /// cell's odds of drawing a coloured (object) code rather than a plain (ground) one move by
+    /// up to this many logits towards the class of its decided neighbours. An experiment: on
+    /// training scenes it smoothed the ground and started fewer objects (docs/MODEL.md, session
+    /// 31). A code bank, a model without a context or --within-temperature 0 ignore it.
+    #[arg(long, default_value_t = DEFAULT_CLASS_COHERENCE, value_name = "LOGITS")]
+    pub class_coherence: f32,
     /// Let the model regenerate observed pixels too (the paper's behaviour). By default the
     /// guidance is kept where it was observed and the model fills only the missing pixels.
     #[arg(long)]
@@ -565,6 +574,7 @@ impl Default for SamplingSettings {
             cells_per_pass: DEFAULT_CELLS_PER_PASS,
             max_passes: DEFAULT_MAX_PASSES,
             hue_coherence: DEFAULT_HUE_COHERENCE,
+            class_coherence: DEFAULT_CLASS_COHERENCE,
             regenerate_observed: false,
             whole_objects: false,
             quilt_tile: None,
@@ -583,6 +593,7 @@ impl SamplingSettings {
         in_range("--cells-per-pass", self.cells_per_pass, 1..=4096)?;
         in_range("--max-passes", self.max_passes, 1..=64)?;
         in_range("--hue-coherence", self.hue_coherence, 0.0..=100.0)?;
+        in_range("--class-coherence", self.class_coherence, 0.0..=100.0)?;
         if let Some(tile) = self.quilt_tile {
             in_range("--quilt-tile", tile, 0..=64)?;
         }
@@ -602,6 +613,7 @@ impl SamplingSettings {
             cells_per_pass: self.cells_per_pass,
             max_passes: self.max_passes,
             hue_coherence: self.hue_coherence,
+            class_coherence: self.class_coherence,
             within_class_temperature: (self.within_temperature > 0.0).then_some(self.within_temperature),
             whole_objects: self.whole_objects,
             quilt_tile: self.quilt_tile.unwrap_or(DEFAULT_QUILT_TILE),
@@ -1325,6 +1337,11 @@ mod tests {
         let mut s = RunSettings::default();
         s.sampling.max_passes = 12;
         assert_eq!(s.sampling.refiner_options().max_passes, 12, "--max-passes reaches the refiner");
+        assert_eq!(s.sampling.refiner_options().class_coherence, 0.0, "--class-coherence is off by default");
+        s.sampling.class_coherence = 1.5;
+        assert_eq!(s.sampling.refiner_options().class_coherence, 1.5, "--class-coherence reaches the refiner");
+        s.sampling.class_coherence = -1.0;
+        assert!(err(s).contains("--class-coherence"));
         for bad in [-1.0, f32::NAN, 4000.0] {
             let mut s = RunSettings::default();
             s.refiner.adapt = bad;

@@ -135,6 +135,9 @@ impl WorldArgs {
             if s.max_passes != sgam_pipeline::settings::DEFAULT_MAX_PASSES {
                 label.push_str(&format!("-p{}", s.max_passes));
             }
+            if s.class_coherence != sgam_pipeline::settings::DEFAULT_CLASS_COHERENCE {
+                label.push_str(&format!("-cc{}", s.class_coherence));
+            }
             if s.hue_coherence != sgam_pipeline::settings::DEFAULT_HUE_COHERENCE {
                 label.push_str(&format!("-hue{}", s.hue_coherence));
             }
