@@ -781,7 +781,7 @@ impl VqRefiner {
                         to_host(context.forward(input))?
                     }
                 };
-                let dist: Vec<f32> = window_cells
+                let mut dist: Vec<f32> = window_cells
                     .iter()
                     .enumerate()
                     .flat_map(|(j, &i)| {
@@ -790,8 +790,8 @@ impl VqRefiner {
                     })
                     .collect();
                 let n = window_cells.len();
-                let mut dist = dist;
-                if let (Some(plain), true) = (self.plain_codes.as_deref(), within.is_some()) {
+                // the class coherence shifts the class odds two-level sampling draws from
+                if let Some(plain) = self.plain_codes.as_deref().filter(|_| within.is_some()) {
                     let strength = self.options.class_coherence;
                     class_bias(&mut dist, &window_cells, &open, &states, &codes, plain, [ch, cw], strength);
                 }
@@ -1040,12 +1040,6 @@ impl VqRefiner {
     }
 }
 
-/// The within-class bias of [`RefinerOptions::hue_coherence`] for a window's cells (row-major
-/// `[window_cells.len(), k]`): an open cell whose 8 neighbours hold coloured codes (observed or
-/// revealed; `codes` holds the observed cells' most likely codes) pays `strength * (1 - cos)
-/// / 2` for each coloured code by the angle between its hue and the neighbours' summed hue;
-/// cells with less than half a coloured neighbour's worth of hue, plain codes and closed
-/// cells pay nothing.
 /// [`RefinerOptions::class_coherence`] on a window's negated logits `dist` (row-major
 /// `[window_cells.len(), k]`, lower is likelier): every coloured code of an open cell is made
 /// `strength * (coloured - plain) / decided` likelier, counting its decided 4-neighbours
@@ -1099,6 +1093,12 @@ pub(crate) fn class_bias(
     }
 }
 
+/// The within-class bias of [`RefinerOptions::hue_coherence`] for a window's cells (row-major
+/// `[window_cells.len(), k]`): an open cell whose 8 neighbours hold coloured codes (observed or
+/// revealed; `codes` holds the observed cells' most likely codes) pays `strength * (1 - cos)
+/// / 2` for each coloured code by the angle between its hue and the neighbours' summed hue;
+/// cells with less than half a coloured neighbour's worth of hue, plain codes and closed
+/// cells pay nothing.
 pub(crate) fn hue_bias(
     window_cells: &[usize],
     open: &[bool],
