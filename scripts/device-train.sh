@@ -5,15 +5,15 @@
 # Here, once per session (builds the wgpu trainer, fetches the Vulkan loader, picks the start):
 #   scripts/device-train.sh prepare [START.safetensors]   # default: the bundled model (with its context)
 # Then one device call (carry the two folders; the command ends by itself at BUDGET seconds):
-#   run(command="SEED=9 bash scripts/device-train.sh train 570", carry=[".device", ".gl"], timeout_s=600)
-# (a first call finds the machine cold: about 30 s to start; 570 s leaves the 15 minutes room for
-# one retry of a call that fails early; recording 10,000 pairs took 200 s of it in session 23)
+#   run(command="bash scripts/device-train.sh train 550", carry=[".device", ".gl"], timeout_s=600)
+# (a first call finds the machine cold: about 30 s to start; 550 s leaves the 15 minutes room for
+# one retry of a call that fails early; recording 10,000 oracle pairs took 200 s in session 23)
 # Two runs share the GPU and one recording of the pairs (16 cores record 16 generator runs at
-# once): A continues START's context; B is a 4.6x larger context (256 wide, 6 blocks) from the
-# bundled model's autoencoder (`--new-context` leaves its context out), the capacity ablation
-# issue 26 asks for. At BUDGET both are stopped (their last
-# checkpoints are whole: writes are atomic) and come back as $OUT/{a,b}.safetensors with their
-# val.jsonl and logs. Export with
+# once): both continue START's context on closed-loop pairs, A at batch 512 / lr 5e-4 and B at
+# batch 128 / lr 2e-4 (session 23's run B, a fresh 4.6x larger context, got too few steps to say
+# anything, and a wider context would not fit the step budget: session 29). At BUDGET both are
+# stopped (their last checkpoints are whole: writes are atomic) and come back as
+# $OUT/{a,b}.safetensors with their val.jsonl and logs. Export with
 #   sgam train export FILES_AT/a.safetensors runs/a.safetensors
 # and judge them with `sgam eval world` before bundling.
 set -euo pipefail
@@ -28,7 +28,7 @@ prepare)
   CARGO_PROFILE_RELEASE_DEBUG=false cargo build --release -p sgam --features sgam-model/wgpu --target-dir target-wgpu
   # stripped it is about 100 MB, xz brings it to 25 (a call carries 64 MiB with the tree)
   strip -o target-wgpu/sgam-stripped target-wgpu/release/sgam
-  rm -f .device/sgam
+  rm -f .device/sgam .device/base.safetensors
   xz -T0 -6 -c target-wgpu/sgam-stripped >.device/sgam.xz
   o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
   # NVIDIA's Vulkan driver (libGLX_nvidia) needs glvnd's libraries beside the loader: with
@@ -37,7 +37,6 @@ prepare)
   apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libglvnd0 libegl1 libgl1 libglx0 \
     libopengl0 libgles2 >/dev/null)
   cp "${2:-models/compact.safetensors}" .device/start.safetensors
-  cp models/compact.safetensors .device/base.safetensors
   du -sh .device .gl
   ;;
 train)
@@ -58,20 +57,24 @@ train)
   # session 23 (batch 128): 156 pairs/s for A with B beside it, 1.2 steps/s, the GPU mostly waiting
   # on dispatches (burn-wgpu, many small kernels): a larger batch should cost little more a step
   # (not measured yet). A new SEED records new pairs (its validation pairs change with it).
-  common=(--pairs "${PAIRS:-10000}" --val-pairs "${VAL_PAIRS:-192}" --seed "${SEED:-7}" --batch "${BATCH:-512}"
-    --steps 1000000 --val-every 50 --ckpt-every 25 --time-limit 100000)
-  "$bin" train context --run /tmp/ctxA --model .device/start.safetensors --lr "${LR:-5e-4}" "${common[@]}" \
-    >"$out/a.log" 2>&1 &
+  # A and B continue START on the same closed-loop pairs (CL2's recipe: half the runs grow their
+  # map with the model's own completions on 0.3 of their steps; recorded on the CPU kernels, 16
+  # runs at once), with two recipes: A batch 512 at lr 5e-4, B batch 128 at lr 2e-4 (CL2's lr).
+  # A new SEED records new pairs (its validation pairs change with it; step 0 is START's figure).
+  common=(--pairs "${PAIRS:-6000}" --val-pairs "${VAL_PAIRS:-192}" --seed "${SEED:-12}" --closed-loop 0.5
+    --closed-loop-steps 0.3 --warmup 20 --steps 1000000 --val-every 50 --ckpt-every 25 --time-limit 100000)
+  "$bin" train context --run /tmp/ctxA --model .device/start.safetensors --batch "${BATCH_A:-512}" \
+    --lr "${LR_A:-5e-4}" "${common[@]}" >"$out/a.log" 2>&1 &
   a=$!
-  # B starts on A's pairs once A has written them (the cache key does not name the model)
+  # B starts on A's pairs once A has written them (same starting model, so its closed-loop pairs)
   b=
   alive() { kill -0 "$a" 2>/dev/null || { [ -n "$b" ] && kill -0 "$b" 2>/dev/null; }; }
   while alive && [ $(($(date +%s) - t0)) -lt $((budget - 20)) ]; do
     if [ -z "$b" ] && [ -f /tmp/ctxA/pairs-2.bin ]; then
       echo "pairs recorded after $(($(date +%s) - t0)) s"
       mkdir -p /tmp/ctxB && cp /tmp/ctxA/pairs-*.bin /tmp/ctxB/
-      "$bin" train context --run /tmp/ctxB --model .device/base.safetensors --new-context --dim 256 --layers 6 \
-        --heads 8 --lr "${LR:-5e-4}" "${common[@]}" >"$out/b.log" 2>&1 &
+      "$bin" train context --run /tmp/ctxB --model .device/start.safetensors --batch "${BATCH_B:-128}" \
+        --lr "${LR_B:-2e-4}" "${common[@]}" >"$out/b.log" 2>&1 &
       b=$!
     fi
     sleep 3

@@ -238,12 +238,29 @@ pub struct SamplingTrace {
 impl VqRefiner {
     /// Wraps a model.
     pub fn new(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device) -> Self {
+        Self::with_kernels(model, config, options, device, !cfg!(feature = "wgpu"))
+    }
+
+    /// Loads `weights` on the CPU backend with the model's CPU kernels, in any build: what many
+    /// threads at once run best (closed-loop pair recording, whose runs would otherwise queue
+    /// on one GPU in a `wgpu` build).
+    pub fn from_bytes_cpu(
+        weights: &[u8],
+        config_json: Option<&[u8]>,
+        options: RefinerOptions,
+    ) -> Result<Self, ModelError> {
+        let device = Device::flex();
+        let (model, config) = load_model_bytes(weights, config_json, &device)?;
+        Ok(Self::with_kernels(model, config, options, device, true))
+    }
+
+    fn with_kernels(model: VqModel, config: ModelConfig, options: RefinerOptions, device: Device, cpu: bool) -> Self {
         let rng = ChaCha8Rng::seed_from_u64(options.seed);
         let model = model.valid();
         // the CPU kernels on the CPU backend; a model they do not cover (attention) keeps burn's
         // path, and so does one whose weights they cannot take, said aloud: it runs several
         // times slower
-        let nhwc = if cfg!(feature = "wgpu") {
+        let nhwc = if !cpu {
             None
         } else {
             NhwcNet::new(&model, &config).unwrap_or_else(|e| {

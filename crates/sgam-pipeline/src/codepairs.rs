@@ -268,8 +268,10 @@ pub fn collect(
                 let model = match (closed_loop, model_seed) {
                     (Some(c), Some(seed)) => {
                         let options = sgam_model::RefinerOptions { seed, ..c.options };
+                        // on the CPU kernels in any build: 16 runs at once would queue on one GPU
+                        // in a wgpu build (the lent machine's), where each run has a core
                         Some((
-                            sgam_model::VqRefiner::from_bytes(c.weights, None, options)
+                            sgam_model::VqRefiner::from_bytes_cpu(c.weights, None, options)
                                 .map_err(|source| PipelineError::ModelLoad { path: None, source })?,
                             c.steps,
                         ))
