@@ -231,23 +231,42 @@ pub fn cap_invented_objects(
     if capped.is_empty() {
         return 0;
     }
-    // the observed ground's colour: per channel, the median over observed pixels on the plane
+    let floor = observed_ground_colour(frame, missing, &heights, cfg.min_height_m);
+    put_on_ground(frame, &capped, camera, plane, floor);
+    capped.len()
+}
+
+/// The observed ground's colour: per channel, the median over the observed pixels (not
+/// `missing`) less than `min_height_m` from the plane (`heights`, [`pixel_heights`]); `None`
+/// when there are none.
+fn observed_ground_colour(frame: &RgbdFrame, missing: &[bool], heights: &[f32], min_height_m: f32) -> Option<[f32; 3]> {
     let mut ground: [Vec<f32>; 3] = Default::default();
-    for i in (0..w * h).filter(|&i| !missing[i]) {
-        if heights[i].abs() < cfg.min_height_m {
+    for i in (0..missing.len()).filter(|&i| !missing[i]) {
+        if heights[i].abs() < min_height_m {
             for (c, v) in ground.iter_mut().zip(frame.colour.data[i]) {
                 c.push(v);
             }
         }
     }
-    let floor = (!ground[0].is_empty()).then(|| {
+    (!ground[0].is_empty()).then(|| {
         ground.map(|mut c| {
             let mid = c.len() / 2;
             *c.select_nth_unstable_by(mid, f32::total_cmp).1
         })
-    });
-    let mut moved = 0;
-    for i in capped {
+    })
+}
+
+/// Puts `pixels` of `frame` on the ground plane along their rays, in colour `floor` (their own
+/// colour where `None`); a ray that never meets the plane loses its depth (nothing is fused).
+fn put_on_ground(
+    frame: &mut RgbdFrame,
+    pixels: &[usize],
+    camera: &Camera,
+    plane: &GroundPlane,
+    floor: Option<[f32; 3]>,
+) {
+    let w = frame.width() as usize;
+    for &i in pixels {
         let uv = Vec2::new((i % w) as f32, (i / w) as f32);
         match plane.depth_at(camera, uv) {
             Some(d) => {
@@ -256,12 +275,231 @@ pub fn cap_invented_objects(
                     frame.colour.data[i] = f;
                 }
             }
-            // a ray that never meets the ground: nothing is fused there
             None => frame.depth_m.data[i] = 0.0,
         }
-        moved += 1;
     }
-    moved
+}
+
+/// Parameters of [`unify_object_colours`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ObjectColourConfig {
+    /// How far an invented pixel's colour moves to its object's colour and smoothed shading
+    /// (0 = not at all, 1 = all the way).
+    pub strength: f32,
+    /// Pixels at least this high above the ground plane are object pixels, metres.
+    pub min_height_m: f32,
+    /// Neighbouring pixels of one object differ in depth by less than this share of the depth.
+    pub max_depth_step: f32,
+    /// An object with at least this share of its pixels observed (the map's, re-rendered; and
+    /// at least [`MIN_OBSERVED`] of them) takes the colour they vote for: an object the map
+    /// already holds keeps its colour.
+    pub observed_share: f32,
+    /// Grey wins a vote only with this many times the votes of the best hue.
+    pub grey_majority: f32,
+    /// Shading is smoothed over the object's pixels within this many pixels (0 = kept as drawn).
+    pub shading_radius: usize,
+}
+
+impl ObjectColourConfig {
+    /// Objects as [`ObjectCapConfig::new`] groups them (10 cm above the plane, 5 % depth steps);
+    /// an object a quarter observed keeps its colour; grey needs 3 times the best hue's votes;
+    /// shading smoothed over 5 x 5 pixels.
+    pub fn new(strength: f32) -> Self {
+        Self {
+            strength,
+            min_height_m: 0.1,
+            max_depth_step: 0.05,
+            observed_share: 0.25,
+            grey_majority: 3.0,
+            shading_radius: 2,
+        }
+    }
+}
+
+/// Observed pixels an object needs before they alone vote for its colour.
+const MIN_OBSERVED: usize = 32;
+/// Hue sectors of the vote in [`unify_object_colours`].
+const HUE_BINS: usize = 12;
+/// A pixel whose channels' spread is below this share of its brightest channel votes grey.
+const GREY_SPREAD: f32 = 0.2;
+
+fn luma(c: [f32; 3]) -> f32 {
+    0.299 * c[0] + 0.587 * c[1] + 0.114 * c[2]
+}
+
+/// The hue sector of a coloured pixel, or `None` for a grey one (spread below [`GREY_SPREAD`]).
+fn hue_bin(c: [f32; 3]) -> Option<usize> {
+    let (max, min) = (c[0].max(c[1]).max(c[2]), c[0].min(c[1]).min(c[2]));
+    if !(max > 0.0) || max - min < GREY_SPREAD * max.max(0.05) {
+        return None;
+    }
+    // the hexagonal hue, 0..6
+    let d = max - min;
+    let h = if max == c[0] {
+        ((c[1] - c[2]) / d).rem_euclid(6.0)
+    } else if max == c[1] {
+        (c[2] - c[0]) / d + 2.0
+    } else {
+        (c[0] - c[1]) / d + 4.0
+    };
+    Some(((h / 6.0 * HUE_BINS as f32) as usize).min(HUE_BINS - 1))
+}
+
+/// The chromaticity (`rgb / luma`, grey: equal channels) the `voters` of an object vote for:
+/// each votes for its hue sector or grey; the two neighbouring sectors with the most votes win
+/// unless grey has `grey_majority` times their votes; the chromaticity is the mean over the
+/// winning pixels. `None` when nothing can vote.
+fn voted_chromaticity(colour: &[[f32; 3]], voters: &[usize], grey_majority: f32) -> Option<[f32; 3]> {
+    let mut votes = [0usize; HUE_BINS];
+    let mut grey = 0usize;
+    for &i in voters {
+        match hue_bin(colour[i]) {
+            Some(b) => votes[b] += 1,
+            None => grey += 1,
+        }
+    }
+    // the best pair of neighbouring sectors (a hue on a sector's edge splits its votes)
+    let (best, best_votes) =
+        (0..HUE_BINS)
+            .map(|b| (b, votes[b] + votes[(b + 1) % HUE_BINS]))
+            .fold((0, 0), |a, x| if x.1 > a.1 { x } else { a });
+    if best_votes == 0 || grey as f32 >= grey_majority * best_votes as f32 {
+        return (grey > 0).then_some([1.0; 3]);
+    }
+    let mut sum = [0.0f64; 3];
+    let mut n = 0usize;
+    for &i in voters {
+        let c = colour[i];
+        let y = luma(c);
+        if y > 0.02 && matches!(hue_bin(c), Some(b) if b == best || b == (best + 1) % HUE_BINS) {
+            for k in 0..3 {
+                sum[k] += (c[k] / y) as f64;
+            }
+            n += 1;
+        }
+    }
+    (n > 0).then(|| sum.map(|v| (v / n as f64) as f32))
+}
+
+/// One colour per invented object. The refiner draws an object cell by cell, and its cells
+/// disagree: an invented object comes out mottled in several hues and streaked in brightness
+/// (each code's decoded texture), where a CLEVR-Infinite object is one material under smooth
+/// shading. Every object of `frame` (pixels `min_height_m` above the plane, connected as
+/// [`object_groups`] joins them; observed pixels included) that has invented pixels (`missing`)
+/// gets one chromaticity by vote ([`voted_chromaticity`]): its observed pixels' vote when they
+/// are `observed_share` of it (an object the map holds keeps its colour), else all its
+/// pixels', where grey needs `grey_majority` times the best hue's votes (a mottled object's
+/// dull pixels would otherwise turn it grey). Each invented pixel moves `strength` of the way
+/// to that chromaticity at its shading, the mean luma of the object's pixels within
+/// `shading_radius`. Returns the number of pixels recoloured.
+pub fn unify_object_colours(
+    frame: &mut RgbdFrame,
+    missing: &[bool],
+    camera: &Camera,
+    plane: &GroundPlane,
+    cfg: &ObjectColourConfig,
+) -> usize {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    if !(cfg.strength > 0.0) || missing.len() != w * h {
+        return 0;
+    }
+    let strength = cfg.strength.min(1.0);
+    let heights = pixel_heights(frame, camera, plane);
+    let groups = object_groups(frame, &heights, cfg.min_height_m, cfg.max_depth_step);
+    let colour = &mut frame.colour.data;
+    // each pixel's object (usize::MAX: none), for the shading's window
+    let mut group_of = vec![usize::MAX; w * h];
+    for (g, members) in groups.iter().enumerate() {
+        for &i in members {
+            group_of[i] = g;
+        }
+    }
+    let lumas: Vec<f32> = colour.iter().map(|&c| luma(c)).collect();
+    let r = cfg.shading_radius;
+    let mut recoloured = 0;
+    for (g, members) in groups.iter().enumerate() {
+        if !members.iter().any(|&i| missing[i]) {
+            continue;
+        }
+        let observed: Vec<usize> = members.iter().copied().filter(|&i| !missing[i]).collect();
+        let by_observed =
+            observed.len() >= MIN_OBSERVED && observed.len() as f32 >= cfg.observed_share * members.len() as f32;
+        let chroma = if by_observed {
+            voted_chromaticity(colour, &observed, 1.0)
+        } else {
+            voted_chromaticity(colour, members, cfg.grey_majority)
+        };
+        let Some(chroma) = chroma else { continue };
+        for &i in members.iter().filter(|&&i| missing[i]) {
+            let (u, v) = (i % w, i / w);
+            let (mut sum, mut n) = (0.0f32, 0u32);
+            for y in v.saturating_sub(r)..(v + r + 1).min(h) {
+                for x in u.saturating_sub(r)..(u + r + 1).min(w) {
+                    let j = y * w + x;
+                    if group_of[j] == g {
+                        sum += lumas[j];
+                        n += 1;
+                    }
+                }
+            }
+            let shade = sum / n.max(1) as f32;
+            let c = colour[i];
+            colour[i] = std::array::from_fn(|k| (c[k] + strength * (chroma[k] * shade - c[k])).clamp(0.0, 1.0));
+            recoloured += 1;
+        }
+    }
+    recoloured
+}
+
+/// A morphological opening of the invented objects' outlines: the refiner draws an object
+/// cell by cell and its outline comes out ragged, with tendrils and streaks that the next steps
+/// continue, where a CLEVR-Infinite object's outline is a convex primitive's. The frame's
+/// object pixels (at least `min_height_m` above the plane) are eroded and then dilated by a
+/// square `2 radius + 1` pixels a side; the invented object pixels (`missing`) that the opening
+/// removes (parts narrower than the square) go to the ground plane in the observed ground's
+/// colour, as [`cap_invented_objects`] moves them. Observed pixels never move. Returns the
+/// number of pixels moved.
+pub fn open_invented_objects(
+    frame: &mut RgbdFrame,
+    missing: &[bool],
+    camera: &Camera,
+    plane: &GroundPlane,
+    radius: usize,
+    min_height_m: f32,
+) -> usize {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    if radius == 0 || missing.len() != w * h || !missing.iter().any(|&m| m) {
+        return 0;
+    }
+    let heights = pixel_heights(frame, camera, plane);
+    let object: Vec<bool> = heights.iter().map(|&z| z >= min_height_m).collect();
+    // a square's erosion and dilation are each a row pass and a column pass
+    let pass = |src: &[bool], all: bool, horizontal: bool| -> Vec<bool> {
+        let mut out = vec![false; w * h];
+        for v in 0..h {
+            for u in 0..w {
+                let (c, n) = if horizontal { (u, w) } else { (v, h) };
+                let (lo, hi) = (c.saturating_sub(radius), (c + radius + 1).min(n));
+                let at = |k: usize| if horizontal { src[v * w + k] } else { src[k * w + u] };
+                out[v * w + u] = if all {
+                    // erosion: the frame's border does not erode (an object cut by it goes on)
+                    (lo..hi).all(at)
+                } else {
+                    (lo..hi).any(at)
+                };
+            }
+        }
+        out
+    };
+    let eroded = pass(&pass(&object, true, true), true, false);
+    let opened = pass(&pass(&eroded, false, true), false, false);
+    let removed: Vec<usize> = (0..w * h).filter(|&i| object[i] && missing[i] && !opened[i]).collect();
+    if removed.is_empty() {
+        return 0;
+    }
+    let floor = observed_ground_colour(frame, missing, &heights, min_height_m);
+    put_on_ground(frame, &removed, camera, plane, floor);
+    removed.len()
 }
 
 /// The length of a footprint along its principal axis, metres: `sqrt(12 lambda_max)` of the
@@ -318,6 +556,154 @@ mod tests {
 
     fn frame(w: u32, h: u32, depth: f32) -> RgbdFrame {
         RgbdFrame { colour: Image::filled(w, h, [0.5; 3]), depth_m: Image::filled(w, h, depth) }
+    }
+
+    #[test]
+    fn an_invented_object_takes_one_colour_by_vote_and_smooth_shading() {
+        let (w, h) = (84, 32);
+        let (camera, plane) = setup(w, h);
+        // four walls 10 m away, 3 m above the ground (rows 2..8), apart from each other:
+        // A (u 2..20): observed red on u 2..8, invented blue and dark red mottling on u 8..20;
+        // B (u 24..40): invented, 10 columns green and 6 magenta; C (u 44..60): invented, 13
+        // columns grey and 3 blue; D (u 64..80): invented, 10 columns grey and 6 yellow
+        let mut f = frame(w, h, f32::NAN);
+        let mut missing = vec![false; (w * h) as usize];
+        let (red, blue, dark_red) = ([0.8, 0.2, 0.2], [0.2, 0.2, 0.8], [0.4, 0.1, 0.1]);
+        let (green, magenta, grey, yellow) = ([0.2, 0.7, 0.2], [0.7, 0.2, 0.7], [0.5, 0.5, 0.5], [0.7, 0.7, 0.1]);
+        let walls = || (2..20).chain(24..40).chain(44..60).chain(64..80);
+        for v in 2..8 {
+            for u in walls() {
+                *f.depth_m.at_mut(u, v) = 10.0;
+                missing[(v * w + u) as usize] = u >= 8;
+                *f.colour.at_mut(u, v) = match u {
+                    2..8 => red,
+                    8..20 if u % 3 == 0 => blue,
+                    8..20 => dark_red,
+                    24..34 => green,
+                    34..40 => magenta,
+                    44..60 if u % 5 == 0 => blue,
+                    44..60 => grey,
+                    64..74 => grey,
+                    _ => yellow,
+                };
+            }
+        }
+        let before = f.clone();
+        let chroma = |c: [f32; 3]| c.map(|x| x / luma(c));
+        let close = |a: [f32; 3], b: [f32; 3]| (0..3).all(|k| (a[k] - b[k]).abs() < 2e-3);
+        let sharp = ObjectColourConfig { shading_radius: 0, ..ObjectColourConfig::new(1.0) };
+        // strength 0: nothing moves
+        let zero = ObjectColourConfig::new(0.0);
+        assert_eq!(unify_object_colours(&mut f.clone(), &missing, &camera, &plane, &zero), 0);
+        let n = unify_object_colours(&mut f, &missing, &camera, &plane, &sharp);
+        assert_eq!(n, 6 * (12 + 16 + 16 + 16));
+        for v in 2..8 {
+            for u in walls() {
+                let (old, new) = (*before.colour.at(u, v), *f.colour.at(u, v));
+                // shading kept without smoothing: each pixel's luma is its own (none clipped here)
+                assert!((luma(new) - luma(old)).abs() < 2e-3, "({u}, {v}): luma {} -> {}", luma(old), luma(new));
+                let want = match u {
+                    2..8 => {
+                        assert_eq!(new, old, "observed pixels keep their colour");
+                        continue;
+                    }
+                    // the observed red (a third of the object) decides; dark red is red's hue
+                    8..20 => chroma(red),
+                    24..40 => chroma(green),
+                    // grey with over 3 times the blue's votes; not with 10 to 6 over yellow
+                    44..60 => [1.0; 3],
+                    _ => chroma(yellow),
+                };
+                assert!(close(chroma(new), want), "({u}, {v}): {old:?} -> {new:?}, chromaticity wanted {want:?}");
+            }
+        }
+        // half the way at strength 0.5
+        let mut half = before.clone();
+        let half_cfg = ObjectColourConfig { strength: 0.5, ..sharp };
+        unify_object_colours(&mut half, &missing, &camera, &plane, &half_cfg);
+        let (old, full, mid) = (*before.colour.at(36, 4), *f.colour.at(36, 4), *half.colour.at(36, 4));
+        assert!(close(mid, std::array::from_fn(|k| (old[k] + full[k]) / 2.0)), "{old:?} -> {mid:?} (full: {full:?})");
+        // smoothed shading: the mean luma of the object's pixels within 2 px (the wall's
+        // first column sees 3 columns of itself and none of the gap beside it)
+        let mut smooth = before.clone();
+        unify_object_colours(&mut smooth, &missing, &camera, &plane, &ObjectColourConfig::new(1.0));
+        let window = |u: u32, v: u32| -> f32 {
+            let pixels: Vec<f32> = (v.saturating_sub(2)..(v + 3).min(8).max(2))
+                .filter(|&y| y >= 2)
+                .flat_map(|y| (u - 2..=u + 2).filter(|&x| (24..40).contains(&x)).map(move |x| (x, y)))
+                .map(|(x, y)| luma(*before.colour.at(x, y)))
+                .collect();
+            pixels.iter().sum::<f32>() / pixels.len() as f32
+        };
+        for (u, v) in [(24, 2), (30, 4), (33, 5), (35, 7), (39, 3)] {
+            let got = luma(*smooth.colour.at(u, v));
+            assert!((got - window(u, v)).abs() < 2e-3, "({u}, {v}): luma {got}, window mean {}", window(u, v));
+        }
+        // between green and magenta the shading steps by less than it did
+        let step = |fr: &RgbdFrame| (luma(*fr.colour.at(33, 4)) - luma(*fr.colour.at(34, 4))).abs();
+        assert!(step(&smooth) < 0.5 * step(&before), "{} -> {}", step(&before), step(&smooth));
+        // the ground and an object without invented pixels are left alone
+        let mut observed_only = before.clone();
+        let none = vec![false; (w * h) as usize];
+        assert_eq!(unify_object_colours(&mut observed_only, &none, &camera, &plane, &ObjectColourConfig::new(1.0)), 0);
+        assert_eq!(observed_only.colour.data, before.colour.data);
+    }
+
+    #[test]
+    fn an_opening_sends_invented_tendrils_and_streaks_to_the_ground_and_keeps_bodies() {
+        let (w, h) = (64, 40);
+        let (camera, plane) = setup(w, h);
+        // observed grey ground below the horizon (row 20): depth 200 / (v - 20)
+        let mut f = frame(w, h, f32::NAN);
+        let mut missing = vec![false; (w * h) as usize];
+        for v in 21..h {
+            for u in 0..w {
+                *f.depth_m.at_mut(u, v) = 200.0 / (v - 20) as f32;
+                *f.colour.at_mut(u, v) = [0.3; 3];
+            }
+        }
+        // objects 8 m away (0.5-1.9 m above the ground): a body 20 x 8 px (its first 4 columns
+        // observed), an invented 1-px tendril leaving it (row 28, u 30..45), an observed one
+        // (row 28, u 0..10) and an invented streak 2 px wide (u 50..52, rows 22..38)
+        let mut paint = |u: u32, v: u32, invented: bool| {
+            *f.depth_m.at_mut(u, v) = 8.0;
+            *f.colour.at_mut(u, v) = [0.8, 0.2, 0.2];
+            missing[(v * w + u) as usize] = invented;
+        };
+        for v in 24..32 {
+            for u in 10..30 {
+                paint(u, v, u >= 14);
+            }
+        }
+        for u in 30..45 {
+            paint(u, 28, true);
+        }
+        for u in 0..10 {
+            paint(u, 28, false);
+        }
+        for v in 22..38 {
+            for u in 50..52 {
+                paint(u, v, true);
+            }
+        }
+        let before = f.clone();
+        assert_eq!(open_invented_objects(&mut f.clone(), &missing, &camera, &plane, 0, 0.1), 0);
+        let moved = open_invented_objects(&mut f, &missing, &camera, &plane, 1, 0.1);
+        assert_eq!(moved, 15 + 2 * 16, "the tendril and the streak, nothing else");
+        for v in 0..h {
+            for u in 0..w {
+                let tendril = v == 28 && (30..45).contains(&u);
+                let streak = (50..52).contains(&u) && (22..38).contains(&v);
+                if tendril || streak {
+                    let ground = 200.0 / (v - 20) as f32;
+                    assert!((f.depth_m.at(u, v) - ground).abs() < 1e-3 * ground, "({u}, {v}): {}", f.depth_m.at(u, v));
+                    assert_eq!(*f.colour.at(u, v), [0.3; 3], "({u}, {v}) takes the observed ground's colour");
+                } else {
+                    let same = f.depth_m.at(u, v).to_bits() == before.depth_m.at(u, v).to_bits();
+                    assert!(same && f.colour.at(u, v) == before.colour.at(u, v), "({u}, {v}) moved");
+                }
+            }
+        }
     }
 
     #[test]

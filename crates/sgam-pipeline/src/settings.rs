@@ -683,6 +683,23 @@ pub struct InventedPixelSettings {
     /// are at most 2 m across. Default: the seed's preset (off for every seed).
     #[arg(long, value_name = "M")]
     pub max_object_length: Option<f32>,
+    /// Invented objects in one colour, this share of the way (0 = off, 1 = all the way): the
+    /// refiner draws an object cell by cell and its cells disagree, so an invented object comes
+    /// out mottled in several hues, where a CLEVR-Infinite object is one material under smooth
+    /// shading. Each object of the completed frame with invented pixels (grouped as
+    /// --max-object-m2 groups them; the part the map already holds votes 4 times) takes the
+    /// hue most of its pixels have (or grey), and its invented pixels keep their own shading.
+    /// Needs the ground prior's plane. Default: the seed's preset (off for every seed).
+    #[arg(long, value_name = "SHARE")]
+    pub object_colour: Option<f32>,
+    /// Invented objects' outlines opened, pixels (0 = off): the refiner draws an object cell
+    /// by cell and its outline comes out ragged, with tendrils and streaks that the next steps
+    /// continue. The completed frame's object pixels (10 cm or more above the ground plane) are
+    /// eroded and dilated by a square PX pixels from its centre; invented object pixels in parts
+    /// narrower than it go to the ground plane in the observed ground's colour. Needs the
+    /// ground prior's plane. Default: the seed's preset (off for every seed).
+    #[arg(long, value_name = "PX")]
+    pub object_opening: Option<usize>,
 }
 
 impl Default for InventedPixelSettings {
@@ -695,6 +712,8 @@ impl Default for InventedPixelSettings {
             solid_objects: None,
             max_object_m2: None,
             max_object_length: None,
+            object_colour: None,
+            object_opening: None,
         }
     }
 }
@@ -718,6 +737,12 @@ impl InventedPixelSettings {
         if let Some(m) = self.max_object_length {
             in_range("--max-object-length", m, 0.0..=1_000.0)?;
         }
+        if let Some(s) = self.object_colour {
+            in_range("--object-colour", s, 0.0..=1.0)?;
+        }
+        if let Some(px) = self.object_opening {
+            in_range("--object-opening", px, 0..=32)?;
+        }
         Ok(())
     }
 
@@ -734,6 +759,16 @@ impl InventedPixelSettings {
     /// `--max-object-length` as given, else the seed's preset, metres (0 = off).
     pub fn max_object_length_m(&self, preset: &crate::Preset) -> f32 {
         self.max_object_length.unwrap_or(preset.max_object_length_m)
+    }
+
+    /// `--object-colour` as given, else the seed's preset (0 = off).
+    pub fn object_colour(&self, preset: &crate::Preset) -> f32 {
+        self.object_colour.unwrap_or(preset.object_colour)
+    }
+
+    /// `--object-opening` as given, else the seed's preset, pixels (0 = off).
+    pub fn object_opening_px(&self, preset: &crate::Preset) -> usize {
+        self.object_opening.unwrap_or(preset.object_opening_px)
     }
 }
 
@@ -1039,6 +1074,8 @@ impl RunSettings {
             solid_max_m: if invents { p.solid_objects_m(&preset) } else { 0.0 },
             max_object_m2: if invents { p.max_object_m2(&preset) } else { 0.0 },
             max_object_length_m: if invents { p.max_object_length_m(&preset) } else { 0.0 },
+            object_colour: if invents { p.object_colour(&preset) } else { 0.0 },
+            object_opening_px: if invents { p.object_opening_px(&preset) } else { 0 },
             outputs: self.outputs.settings(),
             max_map_mb: m.max_map_mb,
         })
@@ -1127,18 +1164,26 @@ mod tests {
         oracle.refiner = RefinerSettings::kind(RefinerKind::Oracle);
         oracle.invented.solid_objects = Some(1.5);
         oracle.invented.max_object_m2 = Some(6.0);
+        oracle.invented.object_colour = Some(1.0);
+        oracle.invented.object_opening = Some(3);
         let c = oracle.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
         assert_eq!(c.solid_max_m, 0.0, "the oracle's objects are the true world's");
         assert_eq!(c.max_object_m2, 0.0, "the oracle's objects are never capped");
         assert_eq!(c.max_object_length_m, 0.0);
+        assert_eq!(c.object_colour, 0.0, "the oracle's colours are the true world's");
+        assert_eq!(c.object_opening_px, 0, "and its outlines");
+        assert_eq!(RunSettings::clevr(7).resolve().unwrap().object_colour, crate::CLEVR.object_colour);
         // a value given reaches the model's generator, over the preset
         let mut capped = RunSettings::clevr(7);
         capped.invented.max_object_m2 = Some(4.5);
         capped.invented.solid_objects = Some(0.0);
         capped.invented.max_object_length = Some(3.0);
+        capped.invented.object_colour = Some(0.75);
+        capped.invented.object_opening = Some(2);
         let c = capped.resolve().unwrap().generator_config();
         assert_eq!((c.max_object_m2, c.solid_max_m, c.max_object_length_m), (4.5, 0.0, 3.0));
+        assert_eq!((c.object_colour, c.object_opening_px), (0.75, 2));
         // `keep` turns each filter off for the model
         let mut keep = RunSettings::clevr(7);
         keep.invented = InventedPixelSettings {
@@ -1149,6 +1194,8 @@ mod tests {
             solid_objects: Some(0.0),
             max_object_m2: Some(0.0),
             max_object_length: Some(0.0),
+            object_colour: Some(0.0),
+            object_opening: Some(0),
         };
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
@@ -1317,7 +1364,13 @@ mod tests {
             let mut s = RunSettings::default();
             s.invented.max_object_length = Some(bad * 100.0);
             assert!(err(s).contains("--max-object-length"), "{bad}");
+            let mut s = RunSettings::default();
+            s.invented.object_colour = Some(bad / 5.0);
+            assert!(err(s).contains("--object-colour"), "{bad}");
         }
+        let mut s = RunSettings::default();
+        s.invented.object_opening = Some(33);
+        assert!(err(s).contains("--object-opening"));
         let mut s = RunSettings::default();
         s.seed.seed_template = Some("a".into());
         s.seed.seed_google_earth = Some("b".into());
