@@ -105,10 +105,6 @@ pub struct RunConfig {
     /// ([`GeneratorConfig::object_colour`]); 0 = off (runs written before it existed read as 0).
     #[serde(default)]
     pub object_colour: f32,
-    /// Invented objects' outlines opened by a square this many pixels from its centre
-    /// ([`GeneratorConfig::object_opening_px`]); 0 = off (runs written before it existed read as 0).
-    #[serde(default)]
-    pub object_opening_px: usize,
     /// Bound on the map's memory, MB: beyond it, far super-blocks go to tiles on disk
     /// ([`crate::tiles`]). 0 = no bound (runs written before it existed read as 0).
     #[serde(default)]
@@ -132,7 +128,6 @@ impl RunConfig {
             max_object_m2: self.max_object_m2,
             max_object_length_m: self.max_object_length_m,
             object_colour: self.object_colour,
-            object_opening_px: self.object_opening_px,
             ..clevr_generator_config(self.run_seed)
         }
     }

@@ -7,8 +7,7 @@ use sgam_core::edges::{snap_flying_pixels, FlyingPixelConfig};
 use sgam_core::freespace::{carve_invented, FreeSpaceConfig};
 use sgam_core::ground::{fit_ground_plane, snap_to_ground, GroundFitConfig, GroundPlane, GroundSnapConfig};
 use sgam_core::solid::{
-    cap_invented_objects, object_thickness, open_invented_objects, unify_object_colours, ObjectCapConfig,
-    ObjectColourConfig, SolidConfig,
+    cap_invented_objects, object_thickness, unify_object_colours, ObjectCapConfig, ObjectColourConfig, SolidConfig,
 };
 use sgam_core::{Camera, Guidance, Refiner, RgbdFrame};
 use sgam_map::{warp_colour, SourceSelection, SourceView, TsdfConfig, TsdfMap, WarpConfig};
@@ -62,10 +61,6 @@ pub struct GeneratorConfig {
     /// Each invented object takes one colour by vote, its invented pixels moved this share of
     /// the way to it at their own shading ([`sgam_core::solid::unify_object_colours`]); 0 = off.
     pub object_colour: f32,
-    /// Invented objects' outlines are opened by a square this many pixels from its centre: the
-    /// invented parts narrower than it go to the ground plane
-    /// ([`sgam_core::solid::open_invented_objects`]); 0 = off.
-    pub object_opening_px: usize,
 }
 
 /// The loop's parameters for the CLEVR-Infinite world: the [`crate::seeds::CLEVR`] preset's voxels,
@@ -97,7 +92,6 @@ pub fn clevr_generator_config(seed: u64) -> GeneratorConfig {
         max_object_m2: 0.0,
         max_object_length_m: 0.0,
         object_colour: 0.0,
-        object_opening_px: 0,
     }
 }
 
@@ -286,18 +280,6 @@ impl<R: Refiner> WorldGenerator<R> {
                     ..ObjectCapConfig::new(self.config.max_object_m2)
                 };
                 cap_invented_objects(&mut frame, &guidance.missing, camera, &plane, &cfg);
-            }
-        }
-        if invented && self.config.object_opening_px > 0 {
-            if let Some(plane) = self.ground_plane()? {
-                open_invented_objects(
-                    &mut frame,
-                    &guidance.missing,
-                    camera,
-                    &plane,
-                    self.config.object_opening_px,
-                    0.1,
-                );
             }
         }
         if invented && self.config.object_colour > 0.0 {

@@ -36,9 +36,6 @@ pub struct Preset {
     /// Invented objects take one colour by vote, this share of the way (0 = off;
     /// `--object-colour`).
     pub object_colour: f32,
-    /// Invented objects' outlines opened by a square this many pixels from its centre (0 =
-    /// off; `--object-opening`).
-    pub object_opening_px: usize,
     /// Quilting the seed's own pixels (`--bank seed`): a hole wider than this many latent cells
     /// is quilted as tiles of this side (`--quilt-tile`).
     pub quilt_tile: usize,
@@ -66,7 +63,6 @@ pub const CLEVR: Preset = Preset {
     max_object_m2: 6.0,
     max_object_length_m: 0.0,
     object_colour: 0.0,
-    object_opening_px: 0,
     quilt_tile: crate::settings::DEFAULT_QUILT_TILE,
     quilt_bands_wait: sgam_model::refiner::DEFAULT_BANDS_WAIT,
 };
@@ -88,7 +84,6 @@ pub const GOOGLE_EARTH: Preset = Preset {
     max_object_m2: 0.0,
     max_object_length_m: 0.0,
     object_colour: 0.0,
-    object_opening_px: 0,
     quilt_tile: 12,
     quilt_bands_wait: 8,
 };
@@ -96,14 +91,8 @@ pub const GOOGLE_EARTH: Preset = Preset {
 /// `sgam generate --help`), without solids or the size cap, which are sized for
 /// CLEVR-Infinite's objects. (Google Earth's longer wait and larger tiles scored worse on the
 /// 7-Scenes frame, whose forward path uncovers bands on every side: docs/STATUS.md, session 31.)
-pub const RGBD: Preset = Preset {
-    solid_objects_m: 0.0,
-    max_object_m2: 0.0,
-    max_object_length_m: 0.0,
-    object_colour: 0.0,
-    object_opening_px: 0,
-    ..CLEVR
-};
+pub const RGBD: Preset =
+    Preset { solid_objects_m: 0.0, max_object_m2: 0.0, max_object_length_m: 0.0, object_colour: 0.0, ..CLEVR };
 
 /// Where a run's seed frame comes from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -692,14 +692,6 @@ pub struct InventedPixelSettings {
     /// Needs the ground prior's plane. Default: the seed's preset (off for every seed).
     #[arg(long, value_name = "SHARE")]
     pub object_colour: Option<f32>,
-    /// Invented objects' outlines opened, pixels (0 = off): the refiner draws an object cell
-    /// by cell and its outline comes out ragged, with tendrils and streaks that the next steps
-    /// continue. The completed frame's object pixels (10 cm or more above the ground plane) are
-    /// eroded and dilated by a square PX pixels from its centre; invented object pixels in parts
-    /// narrower than it go to the ground plane in the observed ground's colour. Needs the
-    /// ground prior's plane. Default: the seed's preset (off for every seed).
-    #[arg(long, value_name = "PX")]
-    pub object_opening: Option<usize>,
 }
 
 impl Default for InventedPixelSettings {
@@ -713,7 +705,6 @@ impl Default for InventedPixelSettings {
             max_object_m2: None,
             max_object_length: None,
             object_colour: None,
-            object_opening: None,
         }
     }
 }
@@ -740,9 +731,6 @@ impl InventedPixelSettings {
         if let Some(s) = self.object_colour {
             in_range("--object-colour", s, 0.0..=1.0)?;
         }
-        if let Some(px) = self.object_opening {
-            in_range("--object-opening", px, 0..=32)?;
-        }
         Ok(())
     }
 
@@ -764,11 +752,6 @@ impl InventedPixelSettings {
     /// `--object-colour` as given, else the seed's preset (0 = off).
     pub fn object_colour(&self, preset: &crate::Preset) -> f32 {
         self.object_colour.unwrap_or(preset.object_colour)
-    }
-
-    /// `--object-opening` as given, else the seed's preset, pixels (0 = off).
-    pub fn object_opening_px(&self, preset: &crate::Preset) -> usize {
-        self.object_opening.unwrap_or(preset.object_opening_px)
     }
 }
 
@@ -1075,7 +1058,6 @@ impl RunSettings {
             max_object_m2: if invents { p.max_object_m2(&preset) } else { 0.0 },
             max_object_length_m: if invents { p.max_object_length_m(&preset) } else { 0.0 },
             object_colour: if invents { p.object_colour(&preset) } else { 0.0 },
-            object_opening_px: if invents { p.object_opening_px(&preset) } else { 0 },
             outputs: self.outputs.settings(),
             max_map_mb: m.max_map_mb,
         })
@@ -1165,14 +1147,12 @@ mod tests {
         oracle.invented.solid_objects = Some(1.5);
         oracle.invented.max_object_m2 = Some(6.0);
         oracle.invented.object_colour = Some(1.0);
-        oracle.invented.object_opening = Some(3);
         let c = oracle.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
         assert_eq!(c.solid_max_m, 0.0, "the oracle's objects are the true world's");
         assert_eq!(c.max_object_m2, 0.0, "the oracle's objects are never capped");
         assert_eq!(c.max_object_length_m, 0.0);
         assert_eq!(c.object_colour, 0.0, "the oracle's colours are the true world's");
-        assert_eq!(c.object_opening_px, 0, "and its outlines");
         assert_eq!(RunSettings::clevr(7).resolve().unwrap().object_colour, crate::CLEVR.object_colour);
         // a value given reaches the model's generator, over the preset
         let mut capped = RunSettings::clevr(7);
@@ -1180,10 +1160,9 @@ mod tests {
         capped.invented.solid_objects = Some(0.0);
         capped.invented.max_object_length = Some(3.0);
         capped.invented.object_colour = Some(0.75);
-        capped.invented.object_opening = Some(2);
         let c = capped.resolve().unwrap().generator_config();
         assert_eq!((c.max_object_m2, c.solid_max_m, c.max_object_length_m), (4.5, 0.0, 3.0));
-        assert_eq!((c.object_colour, c.object_opening_px), (0.75, 2));
+        assert_eq!(c.object_colour, 0.75);
         // `keep` turns each filter off for the model
         let mut keep = RunSettings::clevr(7);
         keep.invented = InventedPixelSettings {
@@ -1195,7 +1174,6 @@ mod tests {
             max_object_m2: Some(0.0),
             max_object_length: Some(0.0),
             object_colour: Some(0.0),
-            object_opening: Some(0),
         };
         let c = keep.resolve().unwrap();
         assert_eq!((c.ground_snap_m, c.snap_flying_pixels, c.carve_free_space), (None, false, false));
@@ -1368,9 +1346,6 @@ mod tests {
             s.invented.object_colour = Some(bad / 5.0);
             assert!(err(s).contains("--object-colour"), "{bad}");
         }
-        let mut s = RunSettings::default();
-        s.invented.object_opening = Some(33);
-        assert!(err(s).contains("--object-opening"));
         let mut s = RunSettings::default();
         s.seed.seed_template = Some("a".into());
         s.seed.seed_google_earth = Some("b".into());

@@ -43,7 +43,6 @@ fn config(res: u32, steps: usize, trajectory: TrajectorySpec, refiner: RefinerSp
         max_object_m2: 0.0,
         max_object_length_m: 0.0,
         object_colour: 0.0,
-        object_opening_px: 0,
         max_map_mb: 0,
     }
 }

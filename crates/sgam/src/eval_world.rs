@@ -219,10 +219,6 @@ impl WorldArgs {
             if colour > 0.0 {
                 label.push_str(&format!("-oc{colour}"));
             }
-            let opening = p.object_opening_px(&sgam_pipeline::CLEVR);
-            if opening > 0 {
-                label.push_str(&format!("-open{opening}"));
-            }
         }
         if self.map.no_map {
             label.push_str("-nomap");
@@ -425,7 +421,6 @@ pub fn evaluate(args: &WorldArgs) -> Result<serde_json::Value> {
         "max_object_m2": args.invented.max_object_m2(&sgam_pipeline::CLEVR),
         "max_object_length_m": args.invented.max_object_length_m(&sgam_pipeline::CLEVR),
         "object_colour": args.invented.object_colour(&sgam_pipeline::CLEVR),
-        "object_opening_px": args.invented.object_opening_px(&sgam_pipeline::CLEVR),
         "top_k": args.sampling.top_k,
         "within_temperature": args.sampling.within_temperature,
         "generated": gp, "oracle": op,

@@ -285,7 +285,6 @@ mod tests {
             "max-object-m2" => format!("{} (CLEVR preset)", p.max_object_m2),
             "max-object-length" => format!("{} (CLEVR preset)", p.max_object_length_m),
             "object-colour" => format!("{} (CLEVR preset)", p.object_colour),
-            "object-opening" => format!("{} (CLEVR preset)", p.object_opening_px),
             "quilt-tile" => format!("{} (CLEVR preset)", p.quilt_tile),
             _ => return None,
         })
