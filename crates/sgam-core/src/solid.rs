@@ -331,7 +331,8 @@ fn luma(c: [f32; 3]) -> f32 {
 /// The hue sector of a coloured pixel, or `None` for a grey one (spread below [`GREY_SPREAD`]).
 fn hue_bin(c: [f32; 3]) -> Option<usize> {
     let (max, min) = (c[0].max(c[1]).max(c[2]), c[0].min(c[1]).min(c[2]));
-    if !(max > 0.0) || max - min < GREY_SPREAD * max.max(0.05) {
+    // (NaN votes grey)
+    if max.is_nan() || max <= 0.0 || max - min < GREY_SPREAD * max.max(0.05) {
         return None;
     }
     // the hexagonal hue, 0..6
@@ -401,7 +402,7 @@ pub fn unify_object_colours(
     cfg: &ObjectColourConfig,
 ) -> usize {
     let (w, h) = (frame.width() as usize, frame.height() as usize);
-    if !(cfg.strength > 0.0) || missing.len() != w * h {
+    if cfg.strength.is_nan() || cfg.strength <= 0.0 || missing.len() != w * h {
         return 0;
     }
     let strength = cfg.strength.min(1.0);
@@ -578,8 +579,7 @@ mod tests {
         let mut smooth = before.clone();
         unify_object_colours(&mut smooth, &missing, &camera, &plane, &ObjectColourConfig::new(1.0));
         let window = |u: u32, v: u32| -> f32 {
-            let pixels: Vec<f32> = (v.saturating_sub(2)..(v + 3).min(8).max(2))
-                .filter(|&y| y >= 2)
+            let pixels: Vec<f32> = (v.saturating_sub(2).max(2)..(v + 3).min(8))
                 .flat_map(|y| (u - 2..=u + 2).filter(|&x| (24..40).contains(&x)).map(move |x| (x, y)))
                 .map(|(x, y)| luma(*before.colour.at(x, y)))
                 .collect();
