@@ -179,7 +179,13 @@ impl WorldArgs {
                     "-bank{:08x}",
                     sgam_pipeline::bank::bank_id(&std::fs::read(p).unwrap_or_default())
                 )),
-                sgam_pipeline::BankSpec::Seed => label.push_str("-bankseed"),
+                sgam_pipeline::BankSpec::Seed => {
+                    label.push_str("-bankseed");
+                    // the quilting's tile, when not the synthetic seeds' preset
+                    if let Some(tile) = s.quilt_tile.filter(|&t| t != sgam_pipeline::CLEVR.quilt_tile) {
+                        label.push_str(&format!("-qt{tile}"));
+                    }
+                }
             }
             if s.whole_objects {
                 label.push_str("-whole");
@@ -473,5 +479,34 @@ mod tests {
         let near = (p[3].x - p[2].x).abs();
         let far = (p[0].x - p[1].x).abs();
         assert!(far > near && near > 2.0 && far < 15.0, "{p:?}");
+    }
+
+    #[derive(clap::Parser)]
+    struct Cli {
+        #[command(flatten)]
+        world: WorldArgs,
+    }
+
+    fn label(args: &[&str]) -> String {
+        use clap::Parser;
+        Cli::try_parse_from(std::iter::once("world").chain(args.iter().copied())).unwrap().world.label()
+    }
+
+    #[test]
+    fn a_worlds_folder_names_every_option_that_changes_it_and_keeps_older_names() {
+        // the default's folder is the one sessions 29-32 grew their worlds in (reused, never
+        // regrown): a new option that is off must not rename it
+        let default = label(&[]);
+        let crc = crc32fast::hash(sgam_pipeline::BUNDLED_MODEL);
+        assert_eq!(default, format!("model-{crc:08x}-t1.3-w0.6-g1-flat0.3-carve-solid1-cap6"));
+        assert_eq!(label(&["--object-colour", "1"]), format!("{default}-oc1"));
+        assert_eq!(label(&["--class-coherence", "1"]), default.replace("-t1.3-", "-t1.3-cc1-"));
+        // the seed's own pixels: the tile is named when it is not the preset's
+        let seed = label(&["--bank", "seed"]);
+        assert!(seed.contains("-bankseed") && !seed.contains("-qt"), "{seed}");
+        assert_eq!(label(&["--bank", "seed", "--quilt-tile", "8"]), seed);
+        let tiled = label(&["--bank", "seed", "--quilt-tile", "12"]);
+        assert!(tiled.contains("-bankseed-qt12"), "{tiled}");
+        assert_eq!(label(&["--refiner", "oracle"]), "oracle");
     }
 }
