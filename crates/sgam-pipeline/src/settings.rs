@@ -687,9 +687,12 @@ pub struct InventedPixelSettings {
     /// refiner draws an object cell by cell and its cells disagree, so an invented object comes
     /// out mottled in several hues, where a CLEVR-Infinite object is one material under smooth
     /// shading. Each object of the completed frame with invented pixels (grouped as
-    /// --max-object-m2 groups them; the part the map already holds votes 4 times) takes the
-    /// hue most of its pixels have (or grey), and its invented pixels keep their own shading.
-    /// Needs the ground prior's plane. Default: the seed's preset (off for every seed).
+    /// --max-object-m2 groups them) takes one colour by vote: its observed part's (the part
+    /// the map already holds) when that is a quarter of it, else the hue most of its pixels
+    /// have (grey only with 8 times the votes of any hue); its invented pixels take that colour
+    /// at their shading, smoothed over 5 x 5 pixels of the object. Needs the ground prior's
+    /// plane. Default: the seed's preset (off for every seed). Measured: docs/MODEL.md,
+    /// session 32.
     #[arg(long, value_name = "SHARE")]
     pub object_colour: Option<f32>,
 }
