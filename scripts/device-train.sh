@@ -26,7 +26,8 @@ prepare)
   # burn's wgpu backend builds offline (its cuda backend would download LLVM); no debuginfo, so
   # the binary fits a transfer
   CARGO_PROFILE_RELEASE_DEBUG=false cargo build --release -p sgam --features sgam-model/wgpu --target-dir target-wgpu
-  # stripped it is about 100 MB, xz brings it to 25 (a call carries 64 MiB with the tree)
+  # stripped it is about 100 MB, xz brings it to 31 (session 32; a call carries 64 MiB with the
+  # tree, 27 MB of it)
   strip -o target-wgpu/sgam-stripped target-wgpu/release/sgam
   rm -f .device/sgam .device/base.safetensors
   xz -T0 -6 -c target-wgpu/sgam-stripped >.device/sgam.xz
@@ -56,7 +57,7 @@ train)
   mkdir -p "$out"
   # session 23 (batch 128): 156 pairs/s for A with B beside it, 1.2 steps/s, the GPU mostly waiting
   # on dispatches (burn-wgpu, many small kernels): a larger batch should cost little more a step
-  # (not measured yet). A new SEED records new pairs (its validation pairs change with it).
+  # (not measured yet).
   # A and B continue START on the same closed-loop pairs (CL2's recipe: half the runs grow their
   # map with the model's own completions on 0.3 of their steps; recorded on the CPU kernels, 16
   # runs at once), with two recipes: A batch 512 at lr 5e-4, B batch 128 at lr 2e-4 (CL2's lr).
@@ -66,14 +67,14 @@ train)
   "$bin" train context --run /tmp/ctxA --model .device/start.safetensors --batch "${BATCH_A:-512}" \
     --lr "${LR_A:-5e-4}" "${common[@]}" >"$out/a.log" 2>&1 &
   a=$!
-  # B starts on A's pairs once A has written them (same starting model, so its closed-loop pairs)
+  # B trains on A's pairs (--pairs-from) once A has written them: the same starting model and
+  # options, so the same closed-loop pairs, read where they are
   b=
   alive() { kill -0 "$a" 2>/dev/null || { [ -n "$b" ] && kill -0 "$b" 2>/dev/null; }; }
   while alive && [ $(($(date +%s) - t0)) -lt $((budget - 20)) ]; do
     if [ -z "$b" ] && [ -f /tmp/ctxA/pairs-2.bin ]; then
       echo "pairs recorded after $(($(date +%s) - t0)) s"
-      mkdir -p /tmp/ctxB && cp /tmp/ctxA/pairs-*.bin /tmp/ctxB/
-      "$bin" train context --run /tmp/ctxB --model .device/start.safetensors --batch "${BATCH_B:-128}" \
+      "$bin" train context --run /tmp/ctxB --model .device/start.safetensors --pairs-from /tmp/ctxA --batch "${BATCH_B:-128}" \
         --lr "${LR_B:-2e-4}" "${common[@]}" >"$out/b.log" 2>&1 &
       b=$!
     fi

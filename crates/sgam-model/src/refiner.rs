@@ -1501,18 +1501,24 @@ fn paste_sources(
 mod tests {
     use super::*;
 
+    /// A 3 x 3 code grid's cell states, window and open cells: the top row observed, the middle
+    /// row open, the bottom-left cell revealed as code `revealed` and the rest of it open.
+    fn three_by_three(revealed: u32) -> (Vec<CellState>, Vec<usize>, Vec<bool>) {
+        let mut states = vec![CellState::Observed; 3];
+        states.extend([CellState::Open; 3]);
+        states.extend([CellState::Revealed(revealed), CellState::Open, CellState::Open]);
+        let open = states.iter().map(|s| *s == CellState::Open).collect();
+        (states, (0..9).collect(), open)
+    }
+
     #[test]
     fn a_cell_next_to_red_cells_pays_for_blue_codes_and_not_for_red_ones() {
         // codes: 0 plain, 1 red, 2 blue (opposite chroma), 3 a red turned a right angle
         let hues = [[0.0, 0.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0]];
         let (ch, cw) = (3usize, 3usize);
         // row 0 observed red, row 1 open, row 2: revealed blue on the left, open elsewhere
-        let mut states = vec![CellState::Observed; 3];
-        states.extend([CellState::Open; 3]);
-        states.extend([CellState::Revealed(2), CellState::Open, CellState::Open]);
+        let (states, window, open) = three_by_three(2);
         let codes = vec![1, 1, 1, 0, 0, 0, 0, 0, 0];
-        let window: Vec<usize> = (0..9).collect();
-        let open: Vec<bool> = states.iter().map(|s| *s == CellState::Open).collect();
         let bias = hue_bias(&window, &open, &states, &codes, &hues, [ch, cw], 4.0);
         let at = |cell: usize, code: usize| bias[cell * 4 + code];
         // the middle right cell (5) sees two red observed cells and no blue one
@@ -1535,12 +1541,8 @@ mod tests {
         // top row (observed: coloured, coloured, plain) and the revealed bottom-left (plain)
         let plain = [true, true, false, false];
         let (ch, cw, k) = (3usize, 3usize, 4usize);
-        let mut states = vec![CellState::Observed; 3];
-        states.extend([CellState::Open; 3]);
-        states.extend([CellState::Revealed(0), CellState::Open, CellState::Open]);
+        let (states, window, open) = three_by_three(0);
         let codes = vec![2, 3, 0, 0, 0, 0, 0, 0, 0];
-        let window: Vec<usize> = (0..9).collect();
-        let open: Vec<bool> = states.iter().map(|s| *s == CellState::Open).collect();
         let before: Vec<f32> = (0..9 * k).map(|i| (i % 5) as f32).collect();
         let mut dist = before.clone();
         class_bias(&mut dist, &window, &open, &states, &codes, &plain, [ch, cw], 2.0);
